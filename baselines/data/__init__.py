@@ -1,0 +1,1 @@
+"""Dataset readers (nvidia, dnerf, hypernerf, colmap) producing cameras in our convention."""

@@ -1,0 +1,1 @@
+"""4DGS baseline: Gaussian model, HexPlane deformation, trainer loop, hooks, plugins, checkpoints."""

@@ -1,0 +1,1 @@
+"""Differentiable Gaussian rasterizer with reference, cpu and gsplat backends."""

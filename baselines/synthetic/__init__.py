@@ -1,0 +1,1 @@
+"""Synthetic dynamic-scene simulator with its own analytic renderer and full ground truth."""
