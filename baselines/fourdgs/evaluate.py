@@ -1,0 +1,161 @@
+"""Evaluation and rendering outputs in 4DGS's layout.
+
+    <model>/<split>/ours_<iter>/renders/00000.png   rendered test (or train) views
+    <model>/<split>/ours_<iter>/gt/00000.png        ground truth
+    <model>/<split>/ours_<iter>/depth/00000.png     expected depth, colour-mapped (near = bright)
+    <model>/video/ours_<iter>/video_rgb.mp4         novel-time video (scene.video_cameras)
+    <model>/results.json, per_view.json             metrics as 4DGS's metrics.py writes them
+
+results.json = {"ours_<iter>": {"PSNR", "SSIM", "LPIPS-vgg", "LPIPS-alex"}} and per_view.json the
+same keys mapping image name -> value. LPIPS is null when the lpips package or its weights are
+unavailable, and results.json then says why under "LPIPS_unavailable"; it is never faked.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Sequence
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+from baselines.metrics import lpips_or_reason, psnr, ssim
+
+from .renderer import render
+
+if TYPE_CHECKING:
+    from baselines.data import Camera
+
+    from .gaussian_model import GaussianModel
+
+
+@dataclass
+class EvalResult:
+    """Per-view and mean metrics of one split."""
+
+    per_view: dict[str, dict[str, float | None]] = field(default_factory=dict)
+    mean: dict[str, float | None] = field(default_factory=dict)
+    lpips_unavailable: str | None = None
+    render_ms: float = 0.0
+
+
+def to_uint8(image: Tensor) -> np.ndarray:
+    """[H, W, 3] float in [0, 1] -> [H, W, 3] uint8 BGR for OpenCV."""
+    rgb = (image.detach().clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+    return np.ascontiguousarray(rgb[..., ::-1])
+
+
+def depth_to_color(depth: Tensor, alpha: Tensor) -> np.ndarray:
+    """Colour-mapped inverse depth ([H, W, 1] each) -> [H, W, 3] uint8 BGR; empty pixels black."""
+    inv = torch.where(alpha > 0.5, 1.0 / depth.clamp(min=1e-6), torch.zeros_like(depth))[..., 0]
+    valid = inv[alpha[..., 0] > 0.5]
+    lo, hi = (float(valid.min()), float(valid.max())) if valid.numel() else (0.0, 1.0)
+    norm = ((inv - lo) / max(hi - lo, 1e-12)).clamp(0, 1)
+    gray = (norm * 255).to(torch.uint8).cpu().numpy()
+    colored = cv2.applyColorMap(gray, cv2.COLORMAP_TURBO)
+    colored[(alpha[..., 0] <= 0.5).cpu().numpy()] = 0
+    return colored
+
+
+def write_png(path: Path, image_bgr: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), image_bgr):
+        raise OSError(f"could not write {path}")
+
+
+@torch.no_grad()
+def evaluate_cameras(
+    model: GaussianModel,
+    cameras: Sequence[Camera],
+    stage: str,
+    background: Tensor,
+    backend: str = "auto",
+    out_dir: Path | None = None,
+) -> EvalResult:
+    """Render every camera, compute PSNR/SSIM/LPIPS against its image, optionally save PNGs.
+
+    Args:
+        out_dir: when given, renders/, gt/ and depth/ are written inside it (00000.png, ...).
+    """
+    result = EvalResult()
+    sums: dict[str, list[float]] = {"PSNR": [], "SSIM": [], "LPIPS-vgg": [], "LPIPS-alex": []}
+    elapsed = 0.0
+    for idx, cam in enumerate(cameras):
+        start = time.perf_counter()
+        view = render(model, cam, stage, background, backend)
+        elapsed += time.perf_counter() - start
+        image = view.image.clamp(0, 1)
+        gt = cam.image
+        name = f"{idx:05d}.png"
+        row: dict[str, float | None] = {"PSNR": float(psnr(image, gt)), "SSIM": float(ssim(image, gt))}
+        for net in ("vgg", "alex"):
+            value, reason = lpips_or_reason(image, gt, net=net)
+            row[f"LPIPS-{net}"] = value
+            result.lpips_unavailable = reason or result.lpips_unavailable
+        result.per_view[name] = row
+        for key, value in row.items():
+            if value is not None:
+                sums[key].append(value)
+        if out_dir is not None:
+            write_png(out_dir / "renders" / name, to_uint8(image))
+            write_png(out_dir / "gt" / name, to_uint8(gt))
+            write_png(out_dir / "depth" / name, depth_to_color(view.depth, view.alpha))
+    result.mean = {k: (sum(v) / len(v) if v else None) for k, v in sums.items()}
+    result.render_ms = 1000.0 * elapsed / max(1, len(cameras))
+    return result
+
+
+def write_metrics(model_path: Path, method: str, result: EvalResult) -> None:
+    """Merge one method's metrics into results.json / per_view.json (atomic writes)."""
+    summary = _read_json(model_path / "results.json")
+    per_view = _read_json(model_path / "per_view.json")
+    summary[method] = dict(result.mean)
+    summary[method]["render_ms_per_view"] = result.render_ms
+    if result.lpips_unavailable:
+        summary[method]["LPIPS_unavailable"] = result.lpips_unavailable
+    metrics = list(result.mean)
+    per_view[method] = {m: {name: row[m] for name, row in result.per_view.items()} for m in metrics}
+    _write_json(model_path / "results.json", summary)
+    _write_json(model_path / "per_view.json", per_view)
+
+
+@torch.no_grad()
+def render_video(
+    model: GaussianModel, cameras: Sequence[Camera], stage: str, background: Tensor, path: Path,
+    backend: str = "auto", fps: int = 30,
+) -> Path:
+    """Render cameras in order into an mp4 (OpenCV 'mp4v'), written to a temp name then renamed."""
+    if not cameras:
+        raise ValueError("render_video needs at least one camera")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
+    w, h = cameras[0].width, cameras[0].height
+    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+    if not writer.isOpened():
+        raise OSError(f"OpenCV could not open a video writer for {path}")
+    try:
+        for cam in cameras:
+            writer.write(to_uint8(render(model, cam, stage, background, backend).image))
+    finally:
+        writer.release()
+    tmp.replace(path)
+    return path
+
+
+def _read_json(path: Path) -> dict:
+    if not path.exists():
+        return {}
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path} is not valid JSON ({exc}); move it away to re-create it") from exc
+
+
+def _write_json(path: Path, obj: dict) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=1, sort_keys=True))
+    tmp.replace(path)

@@ -1,0 +1,82 @@
+"""Rendering of the (deformed) Gaussian model into one camera, in two steps.
+
+`prepare_view` deforms the Gaussians to the camera's time, computes their view-dependent colours
+and projects them; `composite_view` rasterizes colours plus any extra per-Gaussian channels in ONE
+pass. The split lets the trainer prepare every view of a batch first, so a plugin can build a
+view's extra channels from another view's projection (flow between a frame pair) at no extra
+rasterization cost. `render` does both for evaluation.
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import torch
+from torch import Tensor
+
+from baselines.render import composite, project_gaussians
+from baselines.render.sh import sh_to_rgb
+
+from .hooks import ViewRender
+
+if TYPE_CHECKING:
+    from baselines.data import Camera
+
+    from .gaussian_model import GaussianModel
+
+
+def prepare_view(model: GaussianModel, camera: Camera, stage: str, backend: str = "auto") -> ViewRender:
+    """Deform to camera.time, evaluate SH colours and project (no compositing yet).
+
+    Returns:
+        ViewRender with state, colors [N, 3] and projection filled in; means2d retains its grad
+        (densification statistics read it after backward).
+    """
+    state = model.deform(camera.time, stage)
+    colors = sh_to_rgb(state.shs, state.means, camera.camera_center, model.active_sh_degree)
+    projection = project_gaussians(
+        state.means, state.quats, state.scales, camera.viewmat, camera.K, camera.width, camera.height,
+        opacities=state.opacities, backend=backend,
+    )
+    if projection.means2d.requires_grad:
+        projection.means2d.retain_grad()
+    return ViewRender(camera=camera, state=state, colors=colors, projection=projection)
+
+
+def composite_view(
+    view: ViewRender, background: Tensor, extra_features: dict[str, Tensor] | None = None, backend: str = "auto"
+) -> ViewRender:
+    """Rasterize colours and extra channels of a prepared view in one pass (fills image/depth/alpha/extras).
+
+    Args:
+        view: from prepare_view. background: [3] RGB background (extra channels get 0).
+        extra_features: {name: [N, c]} per-Gaussian channels; their maps land in view.extras.
+    """
+    extra_features = extra_features or {}
+    n = view.colors.shape[0]
+    blocks, names, widths = [view.colors], [], []
+    for name, feats in extra_features.items():
+        if feats.dim() != 2 or feats.shape[0] != n:
+            raise ValueError(f"extra feature {name!r} must have shape [N, c] with N={n}, got {tuple(feats.shape)}")
+        blocks.append(feats.to(view.colors.dtype))
+        names.append(name)
+        widths.append(feats.shape[1])
+    features = torch.cat(blocks, dim=1) if len(blocks) > 1 else view.colors
+    bg = torch.cat([background, background.new_zeros(sum(widths))]) if widths else background
+    cam = view.camera
+    image, depth, alpha = composite(
+        view.projection, view.state.opacities, features, cam.width, cam.height, backend=backend, background=bg
+    )
+    view.image, view.depth, view.alpha = image[..., :3], depth, alpha
+    start = 3
+    view.extras = {}
+    for name, width in zip(names, widths):
+        view.extras[name] = image[..., start : start + width]
+        start += width
+    return view
+
+
+def render(
+    model: GaussianModel, camera: Camera, stage: str, background: Tensor, backend: str = "auto"
+) -> ViewRender:
+    """Deform, project and composite one view (no plugin channels)."""
+    return composite_view(prepare_view(model, camera, stage, backend), background, None, backend)

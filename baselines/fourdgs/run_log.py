@@ -1,0 +1,104 @@
+"""Training log: a JSON-lines file, a progress bar, and per-phase timers.
+
+`train_log.jsonl` gets one object per logged iteration ({"kind": "iter", stage, iteration, losses,
+psnr, num_gaussians, it_per_s, ...}) and one per event (stage start, test, save, checkpoint). Lines
+are flushed as written, so a killed run keeps its log.
+"""
+from __future__ import annotations
+
+import json
+import time
+from collections import defaultdict
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Iterator
+
+from tqdm import tqdm
+
+
+class StageTimer:
+    """Accumulates wall time per named phase (deform_project, rasterize, loss_backward, ...)."""
+
+    def __init__(self) -> None:
+        self.total: dict[str, float] = defaultdict(float)
+        self.count: dict[str, int] = defaultdict(int)
+
+    @contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.total[name] += time.perf_counter() - start
+            self.count[name] += 1
+
+    def means(self) -> dict[str, float]:
+        """Mean milliseconds per call of each phase."""
+        return {k: 1000.0 * self.total[k] / max(1, self.count[k]) for k in self.total}
+
+
+class _Progress:
+    def __init__(self, total: int, initial: int, desc: str, quiet: bool) -> None:
+        self.bar = None if quiet else tqdm(total=total, initial=initial, desc=desc, dynamic_ncols=True)
+        self.ema_loss: float | None = None
+
+    def update(self, ctx: Any) -> None:
+        if self.bar is None:
+            return
+        loss = float(ctx.metrics.get("loss", float("nan")))
+        self.ema_loss = loss if self.ema_loss is None else 0.4 * loss + 0.6 * self.ema_loss
+        self.bar.update(1)
+        if ctx.iteration % 10 == 0:
+            self.bar.set_postfix(loss=f"{self.ema_loss:.5f}", psnr=f"{ctx.metrics.get('psnr', 0):.2f}",
+                                 points=ctx.metrics.get("num_gaussians", 0))
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+class RunLog:
+    """Writes train_log.jsonl and drives the progress bar."""
+
+    def __init__(self, path: Path, quiet: bool = False) -> None:
+        self.path = path
+        self.quiet = quiet
+        self.file = open(path, "a", encoding="utf-8")
+        self.last_time = time.perf_counter()
+        self.last_iteration = 0
+
+    def progress(self, total: int, initial: int, desc: str) -> _Progress:
+        return _Progress(total, initial, desc, self.quiet)
+
+    def _write(self, record: dict[str, Any]) -> None:
+        self.file.write(json.dumps(record, default=str) + "\n")
+        self.file.flush()
+
+    def event(self, kind: str, **fields: Any) -> None:
+        self._write({"kind": kind, "time": time.time(), **fields})
+        if not self.quiet and kind in ("test", "saved", "checkpoint", "resumed", "loaded", "train_end"):
+            tqdm.write(f"[{kind}] " + ", ".join(f"{k}={_short(v)}" for k, v in fields.items()))
+
+    def iteration(self, ctx: Any, every: int) -> None:
+        if every <= 0 or ctx.iteration % every != 0:
+            return
+        now = time.perf_counter()
+        steps = max(1, ctx.iteration - self.last_iteration) if ctx.iteration > self.last_iteration else every
+        rate = steps / max(now - self.last_time, 1e-9)
+        self.last_time, self.last_iteration = now, ctx.iteration
+        self._write({
+            "kind": "iter", "stage": ctx.stage, "iteration": ctx.iteration,
+            "losses": {k: float(v.detach()) for k, v in ctx.losses.items()},
+            "it_per_s": rate, **ctx.metrics,
+        })
+
+    def close(self) -> None:
+        self.file.close()
+
+
+def _short(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k}: {_short(v)}" for k, v in value.items()) + "}"
+    return str(value)

@@ -1,0 +1,322 @@
+"""The two-stage 4DGS training loop with plugin hooks.
+
+Behaviour follows hustvl/4DGaussians' train.py: a coarse stage (no deformation) then a fine stage
+(HexPlane deformation), each with a fresh optimizer; per iteration: learning-rate schedule, SH
+degree warm-up every 1000 iterations, a batch of cameras, L1 (+ optional D-SSIM) loss, HexPlane
+regularisation in the fine stage, backward, densification (before the optimizer step, as 4DGS
+does), optimizer step. The hook points and their order are listed in hooks.py.
+
+Differences from 4DGS, on purpose: the camera sampler and global RNG states are saved in training
+checkpoints (a resumed run continues exactly like an uninterrupted one); the optimizer also steps
+on a stage's last iteration; files are written atomically.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from baselines.data import SceneInfo, initial_point_cloud
+from baselines.metrics import psnr, ssim
+
+from .checkpoint import (
+    load_point_cloud_dir,
+    load_training_state,
+    save_point_cloud_dir,
+    save_training_state,
+)
+from .densification import densification_step
+from .gaussian_model import GaussianModel
+from .hooks import HookRunner, TrainContext
+from .plugins import Plugin
+from .renderer import composite_view, prepare_view, render
+from .run_log import RunLog, StageTimer
+from .sampler import CameraSampler
+
+log = logging.getLogger(__name__)
+STAGES = ("coarse", "fine")
+
+
+@dataclass
+class TrainResult:
+    """Outcome of a training run."""
+
+    model_path: Path
+    final_iteration: int
+    num_gaussians: int
+    wall_seconds: float
+    test_psnr: float | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def resolve_device(name: str) -> torch.device:
+    """'auto' -> cuda when available, else cpu; otherwise the named device (validated)."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device {name!r} requested but CUDA is not available")
+    return device
+
+
+class Trainer:
+    """Runs the coarse and fine stages on a loaded scene with the given plugins.
+
+    Args:
+        args: parsed TrainArgs (parameter groups + run flags).
+        scene: the loaded dataset (cameras in our convention).
+        plugins: instantiated plugins, called in order.
+        model_path: output directory (created).
+    """
+
+    def __init__(self, args: Any, scene: SceneInfo, plugins: list[Plugin], model_path: Path) -> None:
+        self.args = args
+        self.opt = args.opt
+        self.hidden = args.hidden
+        self.pipe = args.pipe
+        self.run = args.run
+        self.device = resolve_device(self.pipe.device)
+        self.hooks = HookRunner(plugins)
+        model_path.mkdir(parents=True, exist_ok=True)
+        bg = [1.0, 1.0, 1.0] if args.model.white_background else [0.0, 0.0, 0.0]
+        self.ctx = TrainContext(
+            args=args, scene=scene, device=self.device, model_path=model_path,
+            background=torch.tensor(bg, dtype=torch.float32, device=self.device),
+        )
+        self.train_cameras = [c.to(self.device) for c in scene.train_cameras]
+        self.test_cameras = [c.to(self.device) for c in scene.test_cameras]
+        self.cameras_extent = float(scene.nerf_normalization["radius"])
+        self.sampler = CameraSampler(self.train_cameras, seed=self.opt.seed)
+        self.run_log = RunLog(model_path / "train_log.jsonl", quiet=self.run.quiet)
+        self.timer = StageTimer()
+
+    # ------------------------------------------------------------------ set-up
+    def build(self) -> None:
+        """Initial point cloud and model (plugins may replace either), before any training."""
+        ctx = self.ctx
+        self.hooks.call("on_scene_loaded", ctx)
+        cloud, source = initial_point_cloud(ctx.scene, seed=self.opt.seed)
+        ctx.point_cloud, ctx.point_cloud_source = cloud, source
+        replacement = self.hooks.first("initial_point_cloud", ctx)
+        if replacement is not None:
+            ctx.point_cloud, ctx.point_cloud_source = replacement, "plugin"
+        model = self.hooks.first("build_model", ctx)
+        if model is None:
+            model = GaussianModel(self.args.model.sh_degree, self.hidden)
+        model.to(self.device) if hasattr(model, "to") else None
+        model.create_from_pcd(ctx.point_cloud.points, ctx.point_cloud.colors, self.cameras_extent)
+        ctx.model = model
+        self.hooks.call("on_model_created", ctx)
+        self.run_log.event("model_created", num_gaussians=model.num_gaussians, point_cloud_source=ctx.point_cloud_source)
+
+    # ------------------------------------------------------------------ main loop
+    def train(self) -> TrainResult:
+        """Both stages (or what a --start_checkpoint leaves of them), saving as configured."""
+        start = time.perf_counter()
+        resume = self._resume_point()
+        if self.ctx.model is None:
+            self.build()
+        for stage in STAGES:
+            if resume is not None and STAGES.index(stage) < STAGES.index(resume["stage"]):
+                continue
+            total = self.opt.coarse_iterations if stage == "coarse" else self.opt.iterations
+            first = 1
+            self._begin_stage(stage, total)
+            if resume is not None and resume["stage"] == stage:
+                first = self._restore(resume) + 1
+                resume = None
+            self._run_stage(stage, first, total)
+        result = TrainResult(
+            model_path=self.ctx.model_path, final_iteration=self.ctx.iteration, num_gaussians=self.ctx.model.num_gaussians,
+            wall_seconds=time.perf_counter() - start, timings=self.timer.means(),
+        )
+        self.run_log.event("train_end", wall_seconds=result.wall_seconds, timings_ms=result.timings)
+        self.run_log.close()
+        return result
+
+    def _begin_stage(self, stage: str, total: int) -> None:
+        ctx = self.ctx
+        ctx.stage, ctx.stage_iterations, ctx.iteration = stage, total, 0
+        ctx.model.training_setup(self.opt)
+        self.hooks.call("on_stage_start", ctx)
+        self.run_log.event("stage_start", stage=stage, iterations=total, num_gaussians=ctx.model.num_gaussians)
+
+    def _run_stage(self, stage: str, first: int, total: int) -> None:
+        ctx = self.ctx
+        bar = self.run_log.progress(total, first - 1, desc=stage)
+        for iteration in range(first, total + 1):
+            ctx.iteration = iteration
+            self.train_step()
+            bar.update(ctx)
+            if iteration in self.run.test_iterations or (stage == "fine" and iteration == total):
+                self.run_log.event("test", stage=stage, iteration=iteration, **self.quick_eval())
+            if iteration in self.run.save_iterations or iteration == total:
+                self.save_point_cloud()
+            if iteration in self.run.checkpoint_iterations:
+                self.save_checkpoint()
+        bar.close()
+        self.hooks.call("on_stage_end", ctx)
+
+    def train_step(self) -> None:
+        """One optimisation step: batch, render, losses, backward, densify, optimizer step."""
+        ctx, model, opt = self.ctx, self.ctx.model, self.opt
+        model.update_learning_rate(ctx.iteration)
+        if ctx.iteration % 1000 == 0:
+            model.oneupSHdegree()
+        ctx.batch = self.hooks.first("select_batch", ctx) or self.sampler.next_batch(opt.batch_size)
+        ctx.losses, ctx.metrics, ctx.densify_record = {}, {}, None
+
+        with self.timer("deform_project"):
+            ctx.views = [prepare_view(model, cam, ctx.stage, self.pipe.backend) for cam in ctx.batch]
+        with self.timer("rasterize"):
+            for k, view in enumerate(ctx.views):
+                extra = self.hooks.merged("extra_features", ctx, k)
+                composite_view(view, ctx.background, extra, self.pipe.backend)
+
+        with self.timer("loss_backward"):
+            ctx.losses.update(self.baseline_losses())
+            ctx.losses.update(self.hooks.merged("extra_losses", ctx))
+            ctx.loss = torch.stack([v.reshape(()) for v in ctx.losses.values()]).sum()
+            if not torch.isfinite(ctx.loss):
+                bad = [k for k, v in ctx.losses.items() if not torch.isfinite(v).all()]
+                raise FloatingPointError(f"non-finite loss at {ctx.stage} iteration {ctx.iteration}: {bad}")
+            self.hooks.call("pre_backward", ctx)
+            ctx.loss.backward()
+            self.hooks.call("post_backward", ctx)
+
+        with self.timer("densify_step"):
+            with torch.no_grad():
+                self._densify()
+                model.optimizer.step()
+                model.optimizer.zero_grad(set_to_none=True)
+        self.hooks.call("on_iteration_end", ctx)
+        ctx.metrics.update(
+            loss=float(ctx.loss.detach()), num_gaussians=model.num_gaussians,
+            psnr=float(torch.stack([psnr(v.image.detach(), v.camera.image) for v in ctx.views]).mean()),
+        )
+        self.run_log.iteration(ctx, every=self.run.log_every)
+
+    def baseline_losses(self) -> dict[str, Tensor]:
+        """4DGS's loss: L1 over the batch, optional D-SSIM, HexPlane regularisers (fine stage)."""
+        ctx = self.ctx
+        renders = torch.stack([v.image for v in ctx.views])
+        gts = torch.stack([v.camera.image for v in ctx.views])
+        losses = {"l1": (renders - gts).abs().mean()}
+        if self.opt.lambda_dssim != 0:
+            losses["dssim"] = self.opt.lambda_dssim * (1.0 - ssim(renders, gts))
+        if ctx.stage == "fine" and self.hidden.time_smoothness_weight != 0:
+            losses["regulation"] = ctx.model.compute_regulation(
+                self.hidden.time_smoothness_weight, self.hidden.l1_time_planes, self.hidden.plane_tv_weight
+            )
+        return losses
+
+    def _densify(self) -> None:
+        ctx = self.ctx
+        views = ctx.views
+        grads = [v.projection.means2d.grad for v in views]
+        if any(g is None for g in grads):  # means2d not in the graph (nothing trainable upstream)
+            return
+        visible = torch.stack([v.projection.visible for v in views]).any(dim=0)
+        radii = torch.stack([v.projection.radii.max(dim=1).values for v in views]).max(dim=0).values
+        cam = views[0].camera
+        ctx.densify_record = densification_step(
+            ctx.model, self.opt, ctx.iteration, ctx.stage, self.cameras_extent, visible, radii.float(),
+            torch.stack(grads).sum(dim=0), cam.width, cam.height,
+        )
+        if ctx.densify_record is not None and getattr(ctx.densify_record, "changed", False):
+            self.hooks.call("post_densify", ctx)
+
+    # ------------------------------------------------------------------ evaluation
+    @torch.no_grad()
+    def quick_eval(self, max_views: int = 8) -> dict[str, float]:
+        """Mean PSNR / L1 on (up to max_views of) the test cameras and the training cameras."""
+        out: dict[str, float] = {}
+        for split, cams in (("test", self.test_cameras), ("train", self.train_cameras)):
+            if not cams:
+                continue
+            step = max(1, len(cams) // max_views)
+            values = []
+            for cam in cams[::step][:max_views]:
+                view = render(self.ctx.model, cam, self.ctx.stage, self.ctx.background, self.pipe.backend)
+                values.append((float(psnr(view.image.clamp(0, 1), cam.image)), float((view.image - cam.image).abs().mean())))
+            out[f"{split}_psnr"] = sum(v[0] for v in values) / len(values)
+            out[f"{split}_l1"] = sum(v[1] for v in values) / len(values)
+        return out
+
+    # ------------------------------------------------------------------ persistence
+    def point_cloud_dir(self) -> Path:
+        ctx = self.ctx
+        name = f"iteration_{ctx.iteration}" if ctx.stage == "fine" else f"coarse_iteration_{ctx.iteration}"
+        return ctx.model_path / "point_cloud" / name
+
+    def save_point_cloud(self) -> Path:
+        path = self.point_cloud_dir()
+        save_point_cloud_dir(self.ctx.model, path)
+        self.hooks.call("on_save", self.ctx, path)
+        self.run_log.event("saved", path=str(path))
+        return path
+
+    def save_checkpoint(self) -> Path:
+        ctx = self.ctx
+        path = ctx.model_path / f"chkpnt_{ctx.stage}_{ctx.iteration}.pth"
+        extra = {
+            "torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
+            "sampler": self.sampler.state_dict(),
+            "plugins": self.hooks.state_dict(),
+        }
+        save_training_state(path, ctx.model, ctx.iteration, ctx.stage, extra)
+        self.run_log.event("checkpoint", path=str(path))
+        return path
+
+    def _resume_point(self) -> dict[str, Any] | None:
+        """Interpret --start_checkpoint: a chkpnt_*.pth (exact resume) or a point_cloud dir (upgrade)."""
+        spec = self.run.start_checkpoint
+        if not spec:
+            return None
+        path = Path(spec)
+        if path.is_dir():
+            pc_dir = latest_point_cloud_dir(path)
+            self.build()
+            load_point_cloud_dir(pc_dir, self.ctx.model)
+            self.hooks.call("on_load", self.ctx, pc_dir)
+            self.run_log.event("loaded", path=str(pc_dir), num_gaussians=self.ctx.model.num_gaussians)
+            # A 4DGS output is a trained fine-stage model: continue in the fine stage from 0.
+            return {"stage": "fine", "point_cloud_dir": pc_dir}
+        if not path.is_file():
+            raise FileNotFoundError(f"--start_checkpoint {spec}: no such file or directory")
+        state = load_training_state(path)
+        return {"stage": state["stage"], "training_state": state, "path": path}
+
+    def _restore(self, resume: dict[str, Any]) -> int:
+        """Restore a training state into the freshly set-up stage; return its iteration."""
+        if "training_state" not in resume:
+            return 0
+        state = resume["training_state"]
+        self.ctx.model.restore(state["gaussians"], self.opt)
+        extra = state.get("extra") or {}
+        if extra.get("torch_rng") is not None:
+            torch.set_rng_state(extra["torch_rng"])
+        if extra.get("cuda_rng") is not None and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(extra["cuda_rng"])
+        if extra.get("sampler") is not None:
+            self.sampler.load_state_dict(extra["sampler"])
+        self.hooks.load_state_dict(extra.get("plugins") or {})
+        self.run_log.event("resumed", path=str(resume["path"]), stage=state["stage"], iteration=state["iteration"])
+        return int(state["iteration"])
+
+
+def latest_point_cloud_dir(path: Path) -> Path:
+    """A point_cloud/iteration_N dir itself, or the highest fine iteration under a model dir."""
+    if (path / "point_cloud.ply").is_file():
+        return path
+    root = path / "point_cloud" if (path / "point_cloud").is_dir() else path
+    candidates = [p for p in root.glob("iteration_*") if (p / "point_cloud.ply").is_file()]
+    if not candidates:
+        raise FileNotFoundError(f"--start_checkpoint {path}: no point_cloud.ply and no iteration_N directory inside")
+    return max(candidates, key=lambda p: int(p.name.split("_")[-1]))
