@@ -1,7 +1,7 @@
 """`Camera`: one view of the dataset in our convention (see `geometry.py`)."""
 from __future__ import annotations
 
-import dataclasses
+import copy
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -84,9 +84,10 @@ class Camera:
         return self.viewmat.device
 
     def to(self, device: torch.device | str) -> "Camera":
-        """A copy with every tensor on `device` (non-blocking where possible)."""
-        move = lambda t: None if t is None else t.to(device)  # noqa: E731
-        return dataclasses.replace(
-            self, K=move(self.K), viewmat=move(self.viewmat), image=move(self.image),
-            mask=move(self.mask), disparity=move(self.disparity),
-            extras={k: v.to(device) for k, v in self.extras.items()})
+        """A copy with every tensor on `device` (no re-validation, so no device sync)."""
+        moved = copy.copy(self)
+        for name in ("K", "viewmat", "image", "mask", "disparity"):
+            value = getattr(self, name)
+            setattr(moved, name, None if value is None else value.to(device))
+        moved.extras = {k: v.to(device) for k, v in self.extras.items()}
+        return moved
