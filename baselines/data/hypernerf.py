@@ -70,8 +70,8 @@ def choose_image_folder(source: Path, resolution: int | float, full_width: int,
         finer = [n for n in folders if n < resolution]
         if not finer:
             raise DatasetError(f"no rgb/{resolution}x folder in {source / 'rgb'} and no finer one to derive it from")
-        n = max(finer)
-        return folders[n], round(full_width / resolution)  # a target width for the 3DGS rule
+        n = max(finer)  # factors are powers of two, so resolution / n is again 2, 4 or 8
+        return folders[n], resolution // n
     if resolution == -1:
         if 2 in folders:
             log.info("hypernerf: resolution -1 reads rgb/2x (the scale 4DGS uses)")

@@ -44,6 +44,15 @@ def detect_dataset_type(source_path: Path | str) -> str:
     raise DatasetError(f"{source} matches no known dataset layout; looked for: {looked_for}")
 
 
+def _check_arguments(resolution: int | float, llffhold: int) -> None:
+    """Reject bad arguments before any file is read."""
+    if isinstance(resolution, bool) or not isinstance(resolution, (int, float)) or not (
+            resolution == -1 or resolution > 0):
+        raise DatasetError(f"resolution={resolution!r}: expected 1, 2, 4, 8, -1 or a positive width")
+    if isinstance(llffhold, bool) or not isinstance(llffhold, int) or llffhold < 1:
+        raise DatasetError(f"llffhold={llffhold!r}: must be a positive integer")
+
+
 def load_scene(source_path: Path | str, dataset_type: str | None = "auto", images: str = "images",
                resolution: int | float = -1, eval: bool = False, white_background: bool = False,
                llffhold: int = 8) -> SceneInfo:
@@ -61,6 +70,7 @@ def load_scene(source_path: Path | str, dataset_type: str | None = "auto", image
         llffhold: hold-out period for nvidia/colmap.
     """
     source = Path(source_path)
+    _check_arguments(resolution, llffhold)
     if dataset_type is None or dataset_type == "auto":
         kind = detect_dataset_type(source)
         log.info("detected %s dataset in %s", kind, source)

@@ -114,7 +114,8 @@ def triangulate_static_points(cameras: Sequence[Camera], *, max_images: int = 10
     if len(views) < 2:
         return empty
     pycolmap.set_random_seed(seed)
-    with tempfile.TemporaryDirectory(prefix="triangulate_") as tmp, quiet_colmap_logs():
+    # COLMAP's INFO/WARNING chatter is silenced; failures surface as exceptions or empty results.
+    with tempfile.TemporaryDirectory(prefix="triangulate_") as tmp, quiet_colmap_logs(min_level=2):
         work = Path(tmp)
         names, has_masks = _write_inputs(views, work, mask_margin)
         database = work / "database.db"
