@@ -139,7 +139,7 @@ def test_resolution_minus_one_caps_width_at_1600(tmp_path, caplog):
 
 @pytest.mark.parametrize("white", [False, True])
 def test_dnerf_rgba_compositing_times_and_splits(scene, tmp_path, white):
-    gt = layouts.write_dnerf(scene, tmp_path / "d", num_test=2, time_scale=0.7)
+    layouts.write_dnerf(scene, tmp_path / "d", num_test=2, time_scale=0.7)
     info = load_scene(tmp_path / "d", white_background=white, eval=True)
     assert len(info.train_cameras) == 6 and len(info.test_cameras) == 2
     assert [c.image_name for c in info.test_cameras] == ["test/r_006", "test/r_007"]

@@ -6,7 +6,8 @@
     <scene>/images/            N images (or another folder named by `images`, e.g. images_2)
     <scene>/disp/*.npy         optional disparity maps, resized to the image resolution
     <scene>/motion_masks/*.png optional motion masks, 255 = dynamic
-    <scene>/points3D.ply       optional point cloud (also points3d.ply, points.npy, sparse/0)
+    <scene>/points3D.ply       optional point cloud (also points3d.ply, points.npy, or sparse/0:
+                               the COLMAP model LLFF poses come from shares their world frame)
 
 Files are paired with frames by sorted name. Poses are used as stored: no recentring and no
 bounds rescaling (NeRF's NDC preprocessing), so cameras stay in the file's world frame. Frames
@@ -14,7 +15,6 @@ whose poses coincide are given the same `camera_id` (the NVIDIA rig's cameras re
 """
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +27,6 @@ from .scene_info import SceneInfo, assemble_scene, llff_holdout
 from .validation import load_npy, require_finite
 from .views import ViewSpec, load_views
 
-log = logging.getLogger(__name__)
 
 POSES_FILE = "poses_bounds.npy"
 POINT_FILES = ("points3D.ply", "points3d.ply", "points.npy", "sparse/0")

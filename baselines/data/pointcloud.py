@@ -1,7 +1,6 @@
 """`PointCloud`, point-file readers (PLY, NPY, COLMAP) and colouring points from images."""
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -9,8 +8,6 @@ from typing import Sequence
 import numpy as np
 
 from .errors import DatasetError
-
-log = logging.getLogger(__name__)
 
 
 @dataclass

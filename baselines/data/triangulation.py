@@ -13,7 +13,6 @@ FeatureExtractionOptions), `Database.read_all_images/read_camera/update_camera`,
 """
 from __future__ import annotations
 
-import logging
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,8 +23,6 @@ import numpy as np
 
 from .cameras import Camera
 from .colmap_compat import quiet_colmap_logs
-
-log = logging.getLogger(__name__)
 
 
 @dataclass

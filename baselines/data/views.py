@@ -5,7 +5,6 @@ then call `load_views`, which does the long part: decoding, compositing, resizin
 """
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -19,8 +18,6 @@ from .geometry import scale_intrinsics
 from .image_io import composite, parallel_map, read_disparity, read_mask, read_rgba
 from .resolution import (log_auto_downscale, resize_disparity, resize_image, resize_mask, size_scale,
                          target_size)
-
-log = logging.getLogger(__name__)
 
 
 @dataclass
