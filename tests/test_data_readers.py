@@ -179,6 +179,17 @@ def test_hypernerf_center_scale_resolutions_and_points(scene, tmp_path):
     assert by_width.width == 60
 
 
+def test_hypernerf_raw_frame_option_matches_4dgs(scene, tmp_path):
+    gt_points = layouts.write_hypernerf(scene, tmp_path / "h", points=True, scales=(1,))["raw_points"]
+    raw = load_scene(tmp_path / "h", resolution=1, reader_options={"apply_scene_transform": False})
+    for cam in all_cameras(raw):
+        np.testing.assert_allclose(cam.viewmat.numpy(), scene.viewmats[cam.frame_index], atol=1e-5)
+    np.testing.assert_allclose(raw.point_cloud.points, gt_points, atol=1e-5)
+    assert raw.near_far == pytest.approx((scene.near, scene.far))
+    with pytest.raises(ValueError, match="apply_scene_transform"):
+        load_scene(tmp_path / "h", dataset_type="nvidia", reader_options={"apply_scene_transform": False})
+
+
 def test_hypernerf_interp_and_vrig_splits_and_times(tmp_path):
     scene = make_scene(num_frames=11, width=32, height=32, focal=27.0)
     layouts.write_hypernerf(scene, tmp_path / "interp", scales=(1,))

@@ -11,7 +11,8 @@
     <scene>/points.npy       optional points [P,3] (or 4DGS's points3D_downsample2.ply)
 
 Conventions, as the Nerfies/HyperNeRF code defines them: positions and dataset points are mapped
-by p -> (p - center) * scale (scene.json), so near/far apply as given; K = [[f, skew, px],
+by p -> (p - center) * scale (scene.json), so near/far apply as given (4DGS does NOT apply this
+map; `apply_scene_transform=False` reproduces its frame); K = [[f, skew, px],
 [0, f * pixel_aspect_ratio, py], [0, 0, 1]] with pixel centres at +0.5 (our convention), scaled
 to the chosen rgb/{N}x images. Lens distortion is IGNORED (4DGS ignores it too); a warning is
 logged when a camera has any.
@@ -122,8 +123,14 @@ def _splits(ids: list[str], train_ids: list, val_ids: list, source: Path) -> tup
 
 
 def read_hypernerf(source_path: Path | str, images: str = "images", resolution: int | float = -1,
-                   eval: bool = False, white_background: bool = False, llffhold: int = 8) -> SceneInfo:
-    """Read a HyperNeRF/Nerfies scene (see the module docstring); `images`, `eval`, `llffhold` unused."""
+                   eval: bool = False, white_background: bool = False, llffhold: int = 8,
+                   apply_scene_transform: bool = True) -> SceneInfo:
+    """Read a HyperNeRF/Nerfies scene (see the module docstring); `images`, `eval`, `llffhold` unused.
+
+    `apply_scene_transform=False` keeps positions and points in the raw capture frame, which is
+    the frame 4DGS works in (its hyper_loader reads scene.json's center/scale but never applies
+    them), e.g. to continue from a 4DGS HyperNeRF checkpoint.
+    """
     source = Path(source_path)
     dataset_path, metadata_path, scene_path = source / "dataset.json", source / "metadata.json", source / "scene.json"
     dataset, metadata, scene = load_json(dataset_path), load_json(metadata_path), load_json(scene_path)
@@ -136,6 +143,9 @@ def read_hypernerf(source_path: Path | str, images: str = "images", resolution: 
     scale = json_float(scene, "scale", scene_path, positive=True)
     near = json_float(scene, "near", scene_path, default=math.nan)
     far = json_float(scene, "far", scene_path, default=math.nan) if not math.isnan(near) else math.nan
+    if not apply_scene_transform:  # near/far are stated in the normalised frame
+        near, far = near / scale, far / scale
+        center, scale = np.zeros(3), 1.0
 
     time_ids, camera_ids = [], []
     for item in ids:
@@ -166,6 +176,7 @@ def read_hypernerf(source_path: Path | str, images: str = "images", resolution: 
     return assemble_scene(
         cameras, train, test, dataset_type="hypernerf", source_path=source, num_frames=len(set(time_ids)),
         point_cloud=point_cloud, near_far=(near, far) if has_bounds else None,
-        metadata={"scene_center": center.astype(np.float32), "scene_scale": scale, "split": protocol,
+        metadata={"scene_center": center.astype(np.float32), "scene_scale": scale,
+                  "scene_transform_applied": apply_scene_transform, "split": protocol,
                   "image_folder": str(folder.relative_to(source)),
                   "point_file": str(point_file) if point_file else None})

@@ -1,6 +1,7 @@
 """`load_scene`: pick the reader from the files present (or the given type) and run it."""
 from __future__ import annotations
 
+import inspect
 import logging
 from pathlib import Path
 from typing import Callable
@@ -20,6 +21,7 @@ READERS: dict[str, Callable[..., SceneInfo]] = {
     "hypernerf": read_hypernerf,
     "colmap": read_colmap,
 }
+_COMMON_ARGUMENTS = ("source_path", "images", "resolution", "eval", "white_background", "llffhold")
 ALIASES = {"llff": "nvidia", "dynamicnerf": "nvidia", "blender": "dnerf", "nerfies": "hypernerf"}
 
 # What identifies each layout, in the order tried: the first match wins. poses_bounds.npy comes
@@ -55,7 +57,7 @@ def _check_arguments(resolution: int | float, llffhold: int) -> None:
 
 def load_scene(source_path: Path | str, dataset_type: str | None = "auto", images: str = "images",
                resolution: int | float = -1, eval: bool = False, white_background: bool = False,
-               llffhold: int = 8) -> SceneInfo:
+               llffhold: int = 8, reader_options: dict | None = None) -> SceneInfo:
     """Load a dynamic scene into cameras in our convention (see `baselines/data/__init__.py`).
 
     Args:
@@ -68,6 +70,8 @@ def load_scene(source_path: Path | str, dataset_type: str | None = "auto", image
         eval: hold out test views (nvidia/colmap: every `llffhold`-th; dnerf: transforms_test).
         white_background: composite RGBA images on white instead of black.
         llffhold: hold-out period for nvidia/colmap.
+        reader_options: extra keyword arguments of the chosen reader, e.g.
+            {"apply_scene_transform": False} for hypernerf (see `read_hypernerf`).
     """
     source = Path(source_path)
     _check_arguments(resolution, llffhold)
@@ -81,5 +85,12 @@ def load_scene(source_path: Path | str, dataset_type: str | None = "auto", image
                                f"{', '.join(READERS)} (aliases: {', '.join(ALIASES)})")
         if not source.is_dir():
             raise DatasetError(f"dataset folder not found: {source}")
-    return READERS[kind](source, images=images, resolution=resolution, eval=eval,
-                         white_background=white_background, llffhold=llffhold)
+    reader = READERS[kind]
+    options = dict(reader_options or {})
+    accepted = set(inspect.signature(reader).parameters) - set(_COMMON_ARGUMENTS)
+    unknown = sorted(set(options) - accepted)
+    if unknown:
+        raise DatasetError(f"reader_options {unknown} are not options of the {kind} reader "
+                           f"(it accepts: {', '.join(sorted(accepted)) or 'none'})")
+    return reader(source, images=images, resolution=resolution, eval=eval,
+                  white_background=white_background, llffhold=llffhold, **options)
