@@ -1,0 +1,88 @@
+"""COLMAP layout: `sparse/0/{cameras,images,points3D}.{bin,txt}` and `images/`.
+
+Read with `pycolmap.Reconstruction`. COLMAP already uses our camera convention (world->camera,
+OpenCV axes, pixel centres at +0.5), so poses and intrinsics are taken as they are. PINHOLE and
+SIMPLE_PINHOLE cameras are exact; SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV are read with
+their distortion IGNORED (a warning is logged; undistort the images with COLMAP for exact
+results); other models are rejected. Images are ordered by name and timed i / (N - 1); with
+`eval`, every `llffhold`-th image (by name) is a test image. points3D is the point cloud.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from .colmap_compat import (DISTORTED_PINHOLE_MODELS, PINHOLE_MODELS, camera_model_name, image_cam_from_world,
+                            read_reconstruction)
+from .errors import DatasetError
+from .geometry import orthonormal_rotation
+from .pointcloud import PointCloud
+from .scene_info import SceneInfo, assemble_scene, llff_holdout
+from .validation import require_finite
+from .views import ViewSpec, load_views
+
+log = logging.getLogger(__name__)
+
+
+def find_model_dir(source: Path) -> Path | None:
+    """sparse/0, or sparse itself when it holds the model files directly."""
+    for folder in (source / "sparse" / "0", source / "sparse"):
+        if any((folder / f"cameras.{ext}").is_file() for ext in ("bin", "txt")):
+            return folder
+    return None
+
+
+def _intrinsics(camera, source: str, warned: set[str]) -> np.ndarray:
+    model = camera_model_name(camera)
+    if model not in PINHOLE_MODELS + DISTORTED_PINHOLE_MODELS:
+        raise DatasetError(f"{source}: camera {camera.camera_id} has model {model}; supported: "
+                           f"{', '.join(PINHOLE_MODELS + DISTORTED_PINHOLE_MODELS)} (undistort the images first)")
+    if model in DISTORTED_PINHOLE_MODELS and model not in warned:
+        warned.add(model)
+        log.warning("colmap: %s camera distortion is ignored; undistort the images for exact results", model)
+    K = np.asarray(camera.calibration_matrix(), np.float64)
+    require_finite(K, source, f"camera {camera.camera_id} intrinsics")
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise DatasetError(f"{source}: camera {camera.camera_id} has a non-positive focal length")
+    return K
+
+
+def read_colmap(source_path: Path | str, images: str = "images", resolution: int | float = -1,
+                eval: bool = False, white_background: bool = False, llffhold: int = 8) -> SceneInfo:
+    """Read a COLMAP scene (see the module docstring)."""
+    source = Path(source_path)
+    model_dir = find_model_dir(source)
+    if model_dir is None:
+        raise DatasetError(f"no COLMAP model in {source / 'sparse' / '0'} or {source / 'sparse'}")
+    reconstruction = read_reconstruction(model_dir)
+    image_dir = source / images
+    if not image_dir.is_dir():
+        raise DatasetError(f"missing image folder {image_dir}")
+    colmap_images = sorted(reconstruction.images.values(), key=lambda im: im.name)
+    if not colmap_images:
+        raise DatasetError(f"COLMAP model {model_dir} has no images")
+    n = len(colmap_images)
+    warned: set[str] = set()
+    specs = []
+    for i, image in enumerate(colmap_images):
+        camera = reconstruction.cameras[image.camera_id]
+        where = f"{model_dir} image '{image.name}'"
+        pose = require_finite(image_cam_from_world(image), where, "pose")
+        viewmat = np.eye(4)
+        viewmat[:3, :3] = orthonormal_rotation(pose[:, :3], where)
+        viewmat[:3, 3] = pose[:, 3]
+        specs.append(ViewSpec(
+            image_path=image_dir / image.name, image_name=Path(image.name).with_suffix("").as_posix(),
+            K=_intrinsics(camera, str(model_dir), warned), calibrated_size=(int(camera.width), int(camera.height)),
+            viewmat=viewmat, time=i / (n - 1) if n > 1 else 0.0, frame_index=i, camera_id=int(image.camera_id)))
+    points = np.array([p.xyz for p in reconstruction.points3D.values()], np.float64).reshape(-1, 3)
+    colours = np.array([p.color for p in reconstruction.points3D.values()], np.float32).reshape(-1, 3) / 255.0
+    require_finite(points, model_dir, "point coordinate")
+    background = (1.0, 1.0, 1.0) if white_background else (0.0, 0.0, 0.0)
+    cameras = load_views(specs, resolution, background, same_size="camera")
+    train, test = llff_holdout(n, eval, llffhold)
+    return assemble_scene(cameras, train, test, dataset_type="colmap", source_path=source, num_frames=n,
+                          point_cloud=PointCloud(points, colours) if len(points) else None,
+                          metadata={"model_dir": str(model_dir), "image_folder": images})

@@ -1,0 +1,1 @@
+"""Generators of tiny dataset fixtures (written at test time; no binary data is committed)."""
