@@ -18,6 +18,9 @@ from tests.data_fixtures.scene import MARKER_POINT, make_marker_scene, make_scen
 WRITERS = {"nvidia": layouts.write_nvidia, "dnerf": layouts.write_dnerf,
            "hypernerf": layouts.write_hypernerf, "colmap": layouts.write_colmap}
 
+# The fixture writer returns HyperNeRF ground truth in the normalised (Nerfies) frame.
+NORMALISED = {"hypernerf": {"reader_options": {"apply_scene_transform": True}}}
+
 
 @pytest.fixture(scope="module")
 def scene():
@@ -44,7 +47,7 @@ def intensity_centroid(image: torch.Tensor) -> np.ndarray:
 @pytest.mark.parametrize("layout", list(WRITERS))
 def test_reader_recovers_cameras_exactly(layout, scene, tmp_path):
     gt = WRITERS[layout](scene, tmp_path / layout)
-    info = load_scene(tmp_path / layout, resolution=1 if layout == "hypernerf" else -1)
+    info = load_scene(tmp_path / layout, resolution=1 if layout == "hypernerf" else -1, **NORMALISED.get(layout, {}))
     assert info.dataset_type == layout == detect_dataset_type(tmp_path / layout)
     cams = all_cameras(info)
     frames = [c.frame_index for c in cams]
@@ -62,7 +65,7 @@ def test_marker_projects_to_its_pixel_centroid(layout, tmp_path):
     white square at a known 3D point must appear where the loaded camera projects it."""
     marker = make_marker_scene()
     WRITERS[layout](marker, tmp_path / layout)
-    info = load_scene(tmp_path / layout, resolution=1)
+    info = load_scene(tmp_path / layout, resolution=1, **NORMALISED.get(layout, {}))
     point = MARKER_POINT
     if layout == "hypernerf":  # the reader maps the world by (p - center) * scale
         point = (MARKER_POINT - layouts.HYPER_CENTER) * layouts.HYPER_SCALE
@@ -158,7 +161,7 @@ def test_dnerf_rgba_compositing_times_and_splits(scene, tmp_path, white):
 
 def test_hypernerf_center_scale_resolutions_and_points(scene, tmp_path):
     gt = layouts.write_hypernerf(scene, tmp_path / "h", points=True)
-    default = load_scene(tmp_path / "h")  # resolution -1 -> rgb/2x, as 4DGS
+    default = load_scene(tmp_path / "h", **NORMALISED["hypernerf"])  # resolution -1 -> rgb/2x, as 4DGS
     half_K = np.diag([0.5, 0.5, 1.0]) @ scene.K
     for cam in all_cameras(default):
         assert (cam.width, cam.height) == (48, 48)
@@ -171,17 +174,17 @@ def test_hypernerf_center_scale_resolutions_and_points(scene, tmp_path):
                                (gt["raw_points"] - layouts.HYPER_CENTER) * layouts.HYPER_SCALE, atol=1e-5)
     assert default.near_far == pytest.approx((scene.near * layouts.HYPER_SCALE, scene.far * layouts.HYPER_SCALE))
     assert default.metadata["scene_scale"] == layouts.HYPER_SCALE
-    derived = load_scene(tmp_path / "h", resolution=4)  # no rgb/4x: derived from rgb/2x
+    derived = load_scene(tmp_path / "h", resolution=4, **NORMALISED["hypernerf"])  # no rgb/4x: derived from rgb/2x
     cam = derived.train_cameras[0]
     assert (cam.width, cam.height) == (24, 24)
     np.testing.assert_allclose(cam.K.numpy(), np.diag([0.25, 0.25, 1.0]) @ scene.K, atol=1e-5)
-    by_width = load_scene(tmp_path / "h", resolution=60).train_cameras[0]
+    by_width = load_scene(tmp_path / "h", resolution=60, **NORMALISED["hypernerf"]).train_cameras[0]
     assert by_width.width == 60
 
 
 def test_hypernerf_raw_frame_option_matches_4dgs(scene, tmp_path):
     gt_points = layouts.write_hypernerf(scene, tmp_path / "h", points=True, scales=(1,))["raw_points"]
-    raw = load_scene(tmp_path / "h", resolution=1, reader_options={"apply_scene_transform": False})
+    raw = load_scene(tmp_path / "h", resolution=1)  # default: 4DGS's raw frame
     for cam in all_cameras(raw):
         np.testing.assert_allclose(cam.viewmat.numpy(), scene.viewmats[cam.frame_index], atol=1e-5)
     np.testing.assert_allclose(raw.point_cloud.points, gt_points, atol=1e-5)

@@ -10,9 +10,11 @@
     <scene>/rgb/{N}x/<id>.png images downscaled N times
     <scene>/points.npy       optional points [P,3] (or 4DGS's points3D_downsample2.ply)
 
-Conventions, as the Nerfies/HyperNeRF code defines them: positions and dataset points are mapped
-by p -> (p - center) * scale (scene.json), so near/far apply as given (4DGS does NOT apply this
-map; `apply_scene_transform=False` reproduces its frame); K = [[f, skew, px],
+Frame: by default the raw capture frame, as 4DGS works in it (its hyper_loader reads scene.json's
+center/scale but never applies them), so 4DGS HyperNeRF checkpoints and point files line up.
+`reader_options={"apply_scene_transform": True}` applies the Nerfies/HyperNeRF normalisation
+p -> (p - center) * scale to positions and points (near/far of scene.json are stated in that
+frame and are converted accordingly); K = [[f, skew, px],
 [0, f * pixel_aspect_ratio, py], [0, 0, 1]] with pixel centres at +0.5 (our convention), scaled
 to the chosen rgb/{N}x images. Lens distortion is IGNORED (4DGS ignores it too); a warning is
 logged when a camera has any.
@@ -124,12 +126,12 @@ def _splits(ids: list[str], train_ids: list, val_ids: list, source: Path) -> tup
 
 def read_hypernerf(source_path: Path | str, images: str = "images", resolution: int | float = -1,
                    eval: bool = False, white_background: bool = False, llffhold: int = 8,
-                   apply_scene_transform: bool = True) -> SceneInfo:
+                   apply_scene_transform: bool = False) -> SceneInfo:
     """Read a HyperNeRF/Nerfies scene (see the module docstring); `images`, `eval`, `llffhold` unused.
 
-    `apply_scene_transform=False` keeps positions and points in the raw capture frame, which is
-    the frame 4DGS works in (its hyper_loader reads scene.json's center/scale but never applies
-    them), e.g. to continue from a 4DGS HyperNeRF checkpoint.
+    By default positions and points stay in the raw capture frame, the frame 4DGS works in (its
+    hyper_loader reads scene.json's center/scale but never applies them), so a 4DGS HyperNeRF
+    checkpoint can be continued; `apply_scene_transform=True` normalises as Nerfies does.
     """
     source = Path(source_path)
     dataset_path, metadata_path, scene_path = source / "dataset.json", source / "metadata.json", source / "scene.json"
