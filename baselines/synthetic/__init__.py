@@ -14,7 +14,7 @@ from .lighting import Light, LightingChange
 from .motion import Attachment, NonRigid, RigidMotion, Visibility
 from .objects import SceneObject
 from .scenes import get_scene, list_scenes
-from .simulate import SIMULATOR_VERSION, simulate
+from .simulate import SIMULATOR_VERSION, sample_frame, simulate
 from .spec import EFFECTS, SceneSpec
 from .textures import Texture
 
@@ -22,5 +22,5 @@ __all__ = [
     "Attachment", "EFFECTS", "FastObjects", "Forward", "Light", "LightingChange", "NonRigid",
     "Occlusion", "Orbit", "Pan", "Rig", "RigidMotion", "SIMULATOR_VERSION", "SceneObject",
     "SceneSpec", "Shake", "StaticCamera", "Texture", "Textureless", "ThinStructures",
-    "Visibility", "Vrig", "get_scene", "list_scenes", "simulate",
+    "Visibility", "Vrig", "get_scene", "list_scenes", "sample_frame", "simulate",
 ]

@@ -24,8 +24,15 @@ def parse_size(text: str) -> tuple[int, int]:
     return width, height
 
 
+class _Parser(argparse.ArgumentParser):
+    """Argument errors become ValueError, so every failure is reported as one line."""
+
+    def error(self, message: str):
+        raise ValueError(message)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="python -m baselines.synthetic",
         description="Render a synthetic dynamic scene (NVIDIA/DynamicNeRF layout + ground truth).")
     source = parser.add_mutually_exclusive_group(required=True)

@@ -102,6 +102,28 @@ class _Renderer:
         return rgb, centre
 
 
+def sample_frame(spec: SceneSpec, frame: int, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Point-sample frame ``frame`` of ``spec`` at image points [M,2] (x, y; pixel (i, j) has its
+    centre at (j + 0.5, i + 0.5)), without anti-aliasing.
+
+    Returns colour [M,3] float64 in [0, 1] and z-depth [M] (inf where a ray sees nothing). The
+    exact continuous image a stored PNG is a filtered, quantised sampling of; tests use it to
+    check flow without resampling error.
+    """
+    if not isinstance(frame, int) or not 0 <= frame < spec.frames:
+        raise ValueError(f"frame must be an integer in [0, {spec.frames - 1}], got {frame!r}")
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 2 or not np.isfinite(points).all():
+        raise ValueError(f"points must be a finite [M,2] array, got shape {points.shape}")
+    scene = BuiltScene(spec)
+    cam = frame_cameras(spec)[frame]
+    placements = scene.placements(cam.time)
+    dirs = cam.directions(points)
+    hits = cast(placements, cam.center, dirs)
+    light = light_at(spec.light, spec.effect("lighting"), cam.time)
+    return shade(hits, dirs, placements, scene.objects, scene.texture_seeds, light), hits.depth
+
+
 def simulate(spec: SceneSpec, out_dir: Union[str, Path], progress: bool = True) -> Path:
     """Render ``spec`` into ``out_dir`` (see the module docstring for the layout); returns it.
 

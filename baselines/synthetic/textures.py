@@ -72,7 +72,7 @@ def albedo(texture: Texture, points: np.ndarray, seed: int) -> np.ndarray:
         weight = np.clip((weight - 0.5) * 1.6 + 0.5, 0.0, 1.0)  # stretch contrast
     color = c0 + weight[:, None] * (c1 - c0)
     if texture.detail > 0.0:
-        fine = fractal_noise(scaled * 4.0, seed, octaves=2, salt=1)
+        fine = fractal_noise(scaled * 3.0, seed, octaves=1, salt=1)
         color = color * ((1.0 - texture.detail) + texture.detail * 2.0 * fine)[:, None]
     return np.clip(color, 0.0, 1.0)
 

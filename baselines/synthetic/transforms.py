@@ -79,13 +79,6 @@ def c2w_to_llff(c2w: np.ndarray) -> np.ndarray:
     return np.stack([c2w[:3, 1], c2w[:3, 0], -c2w[:3, 2], c2w[:3, 3]], axis=1)
 
 
-def llff_to_c2w(llff: np.ndarray) -> np.ndarray:
-    """Inverse of c2w_to_llff: LLFF 3x4 (or 3x5, the hwf column is ignored) -> OpenCV [4,4]."""
-    out = np.eye(4)
-    out[:3, 0], out[:3, 1], out[:3, 2], out[:3, 3] = llff[:, 1], llff[:, 0], -llff[:, 2], llff[:, 3]
-    return out
-
-
 def rigid_inverse(matrix: np.ndarray) -> np.ndarray:
     """Inverse of a rigid [4,4] (rotation + translation)."""
     out = np.eye(4)

@@ -2,8 +2,8 @@
 
 A scene is written into a hidden staging directory next to the destination and renamed into
 place only when complete, so a killed run never leaves a half-written scene where a reader
-looks. Files are deterministic: PNG via OpenCV (fixed zlib settings), .npy via numpy, JSON with
-sorted-free fixed key order and no timestamps.
+looks. Files are deterministic: PNG via OpenCV (fixed compression level), .npy via numpy, JSON
+in a fixed key order without timestamps.
 """
 from __future__ import annotations
 
