@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from .flow import scene_flow
 from .lighting import light_at
-from .raycast import FrameCamera, cast, shade
+from .raycast import FrameCamera, Hits, cast, shade
 from .scene import BuiltScene
 from .spec import SceneSpec
 from .transforms import c2w_to_llff, intrinsics
@@ -91,13 +91,12 @@ class _Renderer:
         rgb = color.reshape(h, w, n_sub, 3).mean(axis=2)
         if self.centre_sample is not None:
             pick = np.arange(h * w) * n_sub + self.centre_sample
-            centre = type(hits)(depth=hits.depth[pick], index=hits.index[pick],
-                                local=hits.local[pick])
+            centre = Hits(depth=hits.depth[pick], index=hits.index[pick], local=hits.local[pick])
         else:
             centre = cast(placements, cam.center, cam.directions(cam.pixel_grid()))
-        misses = int((centre.index < 0).sum())
+        misses = int((centre.index < 0).sum()) + int((hits.index < 0).sum())
         if misses:
-            raise ValueError(f"scene {self.spec.name!r}, {frame_label}: {misses} pixels see no "
+            raise ValueError(f"scene {self.spec.name!r}, {frame_label}: {misses} rays see no "
                              f"surface; enclose the scene (e.g. a 'room' object)")
         return rgb, centre
 
