@@ -65,6 +65,7 @@ class TrainContext:
     Attributes:
         args: all parameter groups (model, opt, pipe, hidden, extra plugin groups, run flags).
         scene: the loaded dataset. device: training device. model_path: output directory.
+        train_cameras, test_cameras: the scene's cameras already moved to `device`.
         point_cloud / point_cloud_source: the initial cloud and where it came from.
         model: the GaussianModel (None before build). stage: "coarse" | "fine".
         iteration: 1-based iteration within the stage (4DGS numbering); stage_iterations: its total.
@@ -80,6 +81,8 @@ class TrainContext:
     scene: SceneInfo
     device: torch.device
     model_path: Path
+    train_cameras: list[Camera] = field(default_factory=list)
+    test_cameras: list[Camera] = field(default_factory=list)
     point_cloud: PointCloud | None = None
     point_cloud_source: str = ""
     model: GaussianModel | None = None

@@ -90,6 +90,7 @@ class Trainer:
         )
         self.train_cameras = [c.to(self.device) for c in scene.train_cameras]
         self.test_cameras = [c.to(self.device) for c in scene.test_cameras]
+        self.ctx.train_cameras, self.ctx.test_cameras = self.train_cameras, self.test_cameras
         self.cameras_extent = float(scene.nerf_normalization["radius"])
         self.sampler = CameraSampler(self.train_cameras, seed=self.opt.seed)
         self.run_log = RunLog(model_path / "train_log.jsonl", quiet=self.run.quiet)

@@ -1,0 +1,146 @@
+"""Command-line orchestration shared by train.py and render.py (and callable from tests).
+
+`train_from_argv` turns a train.py command line into a finished run: plugins are resolved first
+(they add parameter groups and flags), then flags and config files are parsed, components
+toggled, the dataset loaded and checked, the model trained, the held-out views evaluated and the
+novel-time video written. Every input check happens before the first training iteration.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import random
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from .evaluate import EvalResult, evaluate_cameras, render_video, write_metrics
+from .plugins import Plugin, load_plugin_class, resolve_components
+from .trainer import Trainer, TrainResult
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+EMBEDDED_SCENE = "balloon"
+EMBEDDED_CONFIG = REPO_ROOT / "arguments" / "synthetic" / "default.py"
+log = logging.getLogger("train")
+
+
+@dataclass
+class RunSummary:
+    """What a train.py run produced."""
+
+    trainer: Trainer
+    result: TrainResult
+    evaluation: EvalResult | None
+    video: Path | None
+
+
+def embedded_scene_path(root: Path = REPO_ROOT) -> Path:
+    """Generate the embedded synthetic scene once (data/synthetic/<name>) and return its path."""
+    from baselines.synthetic import get_scene, simulate
+
+    path = root / "data" / "synthetic" / EMBEDDED_SCENE
+    if not (path / "poses_bounds.npy").is_file():
+        log.info("generating the embedded synthetic scene %r into %s", EMBEDDED_SCENE, path)
+        simulate(get_scene(EMBEDDED_SCENE), path)
+    return path
+
+
+def _has_flag(argv: list[str], *names: str) -> bool:
+    return any(a == n or a.startswith(n + "=") for a in argv for n in names)
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def build_trainer(argv: list[str]) -> Trainer:
+    """Parse, validate and load everything a run needs; return a Trainer ready to train."""
+    from arguments import parse_train_args, peek_plugins, write_cfg_args
+    from baselines.data import load_scene
+
+    argv = list(argv)
+    embedded = not _has_flag(argv, "-s", "--source_path")
+    if embedded and not _has_flag(argv, "--configs"):
+        argv += ["--configs", str(EMBEDDED_CONFIG)]
+
+    # Plugins first: they contribute parameter groups that the full parse must know.
+    plugin_classes = [load_plugin_class(name) for name in peek_plugins(argv)]
+    extra_groups: dict[str, type] = {}
+    for cls in plugin_classes:
+        extra_groups.update(cls.param_groups)
+    args = parse_train_args(argv, extra_groups=extra_groups)
+    components = resolve_components(plugin_classes, args.run.disable, args.run.enable)
+    seed_everything(args.opt.seed)
+
+    source = embedded_scene_path() if embedded else Path(args.model.source_path)
+    args.model.source_path = str(source)
+    scene = load_scene(
+        source, dataset_type=args.model.dataset_type, images=args.model.images,
+        resolution=args.model.resolution, eval=args.model.eval,
+        white_background=args.model.white_background, llffhold=args.model.llffhold,
+    )
+    name = args.run.expname or source.name
+    model_path = Path(args.model.model_path or REPO_ROOT / "output" / name)
+    args.model.model_path = str(model_path)
+    model_path.mkdir(parents=True, exist_ok=True)
+    write_cfg_args(model_path, args)
+
+    plugins: list[Plugin] = [
+        cls({g: args.extra[g] for g in cls.param_groups}, components[cls.name]) for cls in plugin_classes
+    ]
+    for plugin in plugins:
+        log.info("plugin %s: components %s", plugin.name, sorted(plugin.enabled) or "none")
+    return Trainer(args, scene, plugins, model_path)
+
+
+def finish_run(trainer: Trainer, result: TrainResult) -> RunSummary:
+    """Evaluate the held-out views (results.json, test renders) and render the novel-time video."""
+    model_path = trainer.ctx.model_path
+    method = f"ours_{result.final_iteration}"
+    model, background, backend = trainer.ctx.model, trainer.ctx.background, trainer.pipe.backend
+    evaluation = None
+    if trainer.test_cameras:
+        evaluation = evaluate_cameras(model, trainer.test_cameras, "fine", background, backend,
+                                      out_dir=model_path / "test" / method)
+        write_metrics(model_path, method, evaluation)
+        summary = ", ".join(f"{k} {v:.4f}" for k, v in evaluation.mean.items() if v is not None)
+        print(f"[train] test views ({len(trainer.test_cameras)}): {summary}")
+        if evaluation.lpips_unavailable:
+            print(f"[train] LPIPS not reported: {evaluation.lpips_unavailable}")
+    video = None
+    if trainer.ctx.scene.video_cameras:
+        cams = [c.to(trainer.device) for c in trainer.ctx.scene.video_cameras]
+        video = render_video(model, cams, "fine", background, model_path / "video" / method / "video_rgb.mp4", backend)
+        print(f"[train] novel-time video: {video}")
+    print(f"[train] done in {result.wall_seconds:.1f} s, {result.num_gaussians} Gaussians, output in {model_path}")
+    return RunSummary(trainer, result, evaluation, video)
+
+
+def train_from_argv(argv: list[str]) -> RunSummary:
+    """The whole of train.py: build, train, evaluate."""
+    logging.basicConfig(level=logging.INFO, format="[%(name)s] %(message)s")
+    trainer = build_trainer(argv)
+    if trainer.run.detect_anomaly:
+        torch.autograd.set_detect_anomaly(True)
+    result = trainer.train()
+    return finish_run(trainer, result)
+
+
+def run_cli(entry: Callable[[], int]) -> None:
+    """Run `entry`; input errors (bad flags, files, config keys, plugins) print one line, exit 2.
+
+    Set FOURDGS_TRACEBACK=1 to see the full traceback instead.
+    """
+    try:
+        sys.exit(entry())
+    except (ValueError, FileNotFoundError, NotADirectoryError) as exc:
+        if os.environ.get("FOURDGS_TRACEBACK"):
+            raise
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)

@@ -1,0 +1,16 @@
+"""Shared fixtures: small generated scenes (never committed binaries)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory) -> Path:
+    """A 32x32, 12-frame balloon scene from the simulator (NVIDIA layout; frames 0 and 8 held out)."""
+    from baselines.synthetic import get_scene, simulate
+
+    path = tmp_path_factory.mktemp("scenes") / "tiny_balloon"
+    simulate(get_scene("balloon", frames=12, width=32, height=32, seed=0), path, progress=False)
+    return path
