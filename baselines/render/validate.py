@@ -100,3 +100,23 @@ def validate_background(background: object, channels: int, reference: Tensor) ->
     _require_shape("background", t, (channels,), f"[C] with C={channels}")
     _require_same_kind("background", t, reference)
     _require_finite("background", t)
+
+
+def validate_composite_inputs(means2d: Tensor, n: int, opacities: object, features: object) -> None:
+    """Check the compositing stage's per-Gaussian inputs against a projection of N Gaussians.
+
+    opacities [N] in [0, 1] and features [N, C] (C >= 1): tensors of means2d's dtype and device,
+    all finite.
+    """
+    for name, value, shape, meaning in (("opacities", opacities, (n,), "[N]"), ("features", features, (n, None), "[N, C]")):
+        t = _require_tensor(name, value)
+        _require_shape(name, t, shape, f"{meaning} with N={n} (the projection's Gaussian count)")
+        if t.dtype != means2d.dtype:
+            raise ValueError(f"{name} has dtype {t.dtype} but the projection has {means2d.dtype}; use one floating dtype")
+        if t.device != means2d.device:
+            raise ValueError(f"{name} is on {t.device} but the projection is on {means2d.device}; use one device")
+        _require_finite(name, t)
+    if features.shape[1] < 1:  # type: ignore[union-attr]
+        raise ValueError("features must have at least one channel, got C=0")
+    if n and bool(((opacities < 0) | (opacities > 1)).any()):  # type: ignore[operator]
+        raise ValueError("opacities must lie in [0, 1] (activated values; did you pass logits?)")
