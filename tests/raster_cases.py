@@ -233,3 +233,35 @@ def render_with(compositor, projection: Projection, opacities: Tensor, features:
     """(features_img, depth, alpha) exactly as the public API assembles them, for one compositor."""
     backend = Backend("under_test", project_gaussians_torch, compositor)
     return _composite(backend, projection, opacities, features, width, height, background)
+
+
+GRAD_RTOL = 1e-3  # float32 gradients of two summation orders (gsplat's tests use 1e-4..5e-3)
+GRAD_ATOL_FRACTION = 1e-4  # absolute tolerance as a fraction of the gradient's largest entry
+
+
+def assert_grads_close(actual: Tensor, expected: Tensor, name: str) -> None:
+    """Per-element |a - e| <= GRAD_ATOL_FRACTION * max|e| + GRAD_RTOL * |e|."""
+    atol = GRAD_ATOL_FRACTION * float(expected.abs().max()) if expected.numel() else 0.0
+    torch.testing.assert_close(actual, expected, rtol=GRAD_RTOL, atol=max(atol, 1e-12), msg=lambda m: f"{name}: {m}")
+
+
+def weighted_loss(outputs: tuple[Tensor, ...], seed: int = 0) -> Tensor:
+    """sum_k <outputs[k], random weights>: a loss whose gradient exercises every pixel and channel."""
+    g = torch.Generator().manual_seed(seed)
+    return sum((t * torch.randn(t.shape, generator=g, dtype=t.dtype)).sum() for t in outputs)
+
+
+def composite_grads(compositor, scene: Scene, seed: int = 0) -> dict[str, Tensor]:
+    """Image, alpha and the gradients of a weighted loss through projection + `compositor`.
+
+    Returns a dict with "image", "alpha" and the gradients "means", "quats", "scales",
+    "opacities", "features", "means2d".
+    """
+    scene = scene.to(scene.means.dtype).requires_grad_()
+    proj = project(scene)
+    proj.means2d.retain_grad()
+    image, alpha = compositor(proj, scene.opacities, scene.features, scene.width, scene.height)
+    weighted_loss((image, alpha), seed).backward()
+    out = {"image": image.detach(), "alpha": alpha.detach(), "means2d": proj.means2d.grad}
+    out.update({k: v.grad for k, v in scene.gaussian_tensors.items()})
+    return out
