@@ -127,14 +127,14 @@ def random_scene(
 
 def camera_space_scene(
     means_cam: Tensor, scales: Tensor, opacities: Tensor, features: Tensor, width: int, height: int,
-    focal: float | None = None, quats: Tensor | None = None,
+    focal: float | None = None, quats: Tensor | None = None, dtype: torch.dtype = torch.float32,
 ) -> Scene:
-    """A scene with the identity camera (world = camera frame) from explicit float32 values."""
+    """A scene with the identity camera (world = camera frame) from explicit values."""
     n = means_cam.shape[0]
     if quats is None:
         quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1)
-    return Scene(means_cam.float(), quats.float(), scales.float(), opacities.float(), features.float(),
-                 torch.eye(4), intrinsics(width, height, focal), width, height)
+    return Scene(*(t.to(dtype) for t in (means_cam, quats, scales, opacities, features)),
+                 torch.eye(4, dtype=dtype), intrinsics(width, height, focal, dtype=dtype), width, height)
 
 
 @dataclass

@@ -5,6 +5,8 @@ over the inputs (an isfinite reduction per tensor), negligible next to rasteriza
 """
 from __future__ import annotations
 
+import operator
+
 import torch
 from torch import Tensor
 
@@ -23,12 +25,18 @@ def _require_shape(name: str, value: Tensor, shape: tuple[int | None, ...], mean
 
 def require_image_size(width: object, height: object) -> tuple[int, int]:
     """Check that width and height are positive Python/NumPy integers; return them as int."""
+    sizes = []
     for name, v in (("width", width), ("height", height)):
-        if isinstance(v, bool) or not hasattr(v, "__index__"):
+        try:
+            # operator.index accepts int-like values only (not 2.5, not a float tensor, not True's
+            # cousins: bool is rejected explicitly since True would otherwise mean 1 pixel).
+            size = None if isinstance(v, bool) else operator.index(v)  # type: ignore[arg-type]
+        except TypeError:
+            size = None
+        if size is None or size <= 0:
             raise ValueError(f"{name} must be a positive integer, got {v!r}")
-        if int(v) <= 0:
-            raise ValueError(f"{name} must be a positive integer, got {int(v)}")
-    return int(width), int(height)  # type: ignore[call-overload]
+        sizes.append(int(size))
+    return sizes[0], sizes[1]
 
 
 def validate_camera(viewmat: object, K: object, reference: Tensor) -> None:
