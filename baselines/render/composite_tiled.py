@@ -32,7 +32,7 @@ from .composite_reference import ALPHA_MAX, TRANSMITTANCE_MIN
 from .projection import ALPHA_THRESHOLD, Projection
 from .tiles import TILE_SIZE, TileBins, bin_gaussians
 
-DEFAULT_MAX_PAIRS = 1 << 21  # pixel x Gaussian pairs materialised per step (~8 MB per float32 tensor)
+DEFAULT_MAX_PAIRS = 1 << 19  # pixel x Gaussian pairs per step: 2 MB float32 temporaries stay cache-friendly
 DEFAULT_SEGMENT = 32  # list entries composited per step; also the early-exit granularity
 SIGMA_CUTOFF = 30.0  # exp(-30) ~ 1e-13 << 1/255: such pairs are skipped by the alpha threshold
 
