@@ -10,16 +10,18 @@ Work is organised as [tiles, 256 pixels, S list entries] tensors:
   empty tiles are skipped, and tiles are processed in batches whose padded pair count stays under
   a budget (memory is bounded whatever the scene);
 - each tile's list is walked in segments of S entries carrying the per-pixel transmittance, and a
-  tile leaves the batch once every pixel has stopped (the transmittance rule), so deep stacks cost
-  only what is composited;
+  tile leaves the batch once every one of its pixels has stopped (the transmittance rule), so a
+  deep stack costs only the entries in front of the stop;
 - the backward pass is hand-written (`_TiledComposite`): it recomputes alphas segment by segment
   (walking the lists back to front with a running suffix sum), so no [pixels x Gaussians]
-  intermediate is stored between the passes.
+  intermediate is kept between the passes. What is kept: the float64 transmittance at the start
+  of each segment, 8 bytes x pixels x (longest list / S).
 
-Results agree with the reference bit for bit in every per-pair quantity (alpha, transmittance and
-the stop decision use the same float operations in the same order; the transmittance is carried
-in float64 because torch.cumprod on CPU accumulates in float64), so the two backends can only
-differ by the summation order of the final weighted sums (~1e-7 relative in float32).
+Every per-pair decision agrees with the reference bit for bit: alpha, the 1/255 skip, the 0.999
+clamp, the transmittance and the stop use the same float operations in the same order (the
+transmittance is carried in float64 because torch.cumprod on CPU accumulates in float64). So the
+two can only differ by the summation order of the final weighted sums (~1e-7 relative in float32).
+A compiled implementation must make the same choices to match the reference as closely.
 """
 from __future__ import annotations
 
@@ -104,7 +106,7 @@ class _Plan:
     segment: int
 
 
-def _make_plan(bins, width: int, height: int, max_pairs: int, segment: int) -> _Plan:
+def _make_plan(bins: TileBins, width: int, height: int, max_pairs: int, segment: int) -> _Plan:
     lengths = bins.offsets[1:] - bins.offsets[:-1]
     tile_ids = torch.nonzero(lengths > 0, as_tuple=False).squeeze(1)
     order = torch.sort(lengths[tile_ids], descending=True, stable=True).indices
@@ -195,6 +197,7 @@ def _segment_ids(plan: _Plan, tiles: Tensor, seg_start: int) -> tuple[Tensor, Te
 
 
 def _batches(plan: _Plan):
+    """Plan positions of each batch of tiles (consecutive, so lists of similar length)."""
     n = plan.tile_ids.numel()
     for start in range(0, n, plan.tiles_per_batch):
         yield torch.arange(start, min(n, start + plan.tiles_per_batch), device=plan.tile_ids.device)
@@ -225,7 +228,7 @@ def _walk_forward(plan: _Plan, tiles: Tensor, means2d, conics, opacities, featur
         colour.index_add_(0, rows, torch.bmm(seg.weights, features[ids]))
         alpha_sum.index_add_(0, rows, seg.weights.sum(dim=2))
         t_carry[rows] = seg.t_end
-        # A tile leaves once its list is exhausted or every pixel in the image has stopped.
+        # A tile leaves once its list is exhausted or every one of its in-image pixels has stopped.
         alive = (plan.lengths[tiles[rows]] > seg_start + plan.segment) & (
             (seg.keep[:, :, -1] & inside[rows]).any(dim=1)
         )
