@@ -74,7 +74,7 @@ def test_torch_tiled_batches_and_segments_match_reference(case_name):
     expected = composite_grads(composite_reference, scene)
 
     def small_steps(*args):
-        return composite_tiled(*args, max_pairs=256 * 16 * 2, segment=16)
+        return composite_tiled(*args, max_pairs=256 * 64 * 2, segment=64)
 
     _assert_matches(composite_grads(small_steps, scene), expected)
 
@@ -89,7 +89,7 @@ def test_torch_tiled_random_scene_with_small_steps():
 
 
 def test_forward_without_grad_matches():
-    scene = random_scene(**SCENES["120g_45x37_c1"])
+    scene = random_scene(**SCENES["120g_45x37_c1"]).requires_grad_()
     with torch.no_grad():
         proj = project(scene)
         for compositor in CPU_COMPOSITORS.values():

@@ -87,6 +87,9 @@ def composite_bins(
     if bins.tile_size != TILE_SIZE:
         raise ValueError(f"bins must use tile_size={TILE_SIZE}, got {bins.tile_size}")
     plan = _make_plan(bins, width, height, max_pairs, segment)
+    # Under torch.no_grad() the backward never runs: skip what only it needs.
+    plan.for_backward = torch.is_grad_enabled() and any(
+        t.requires_grad for t in (means2d, conics, opacities, features))
     return _TiledComposite.apply(means2d, conics, opacities, features, plan)
 
 
@@ -104,6 +107,7 @@ class _Plan:
     gaussian_ids: Tensor  # [M] per-tile depth-sorted Gaussian indices
     tiles_per_batch: int
     segment: int
+    for_backward: bool = True  # keep the per-segment transmittance for the backward pass
 
 
 def _make_plan(bins: TileBins, width: int, height: int, max_pairs: int, segment: int) -> _Plan:
@@ -315,7 +319,7 @@ class _TiledComposite(torch.autograd.Function):
         pixels = TILE_SIZE * TILE_SIZE
         colour = features.new_zeros((n_all, pixels, features.shape[1]))
         alpha = means2d.new_zeros((n_all, pixels, 1))
-        record = any(ctx.needs_input_grad[:4])
+        record = plan.for_backward
         histories = []
         with torch.no_grad():
             for tiles in _batches(plan):
