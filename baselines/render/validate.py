@@ -28,8 +28,8 @@ def require_image_size(width: object, height: object) -> tuple[int, int]:
     sizes = []
     for name, v in (("width", width), ("height", height)):
         try:
-            # operator.index accepts int-like values only (not 2.5, not a float tensor, not True's
-            # cousins: bool is rejected explicitly since True would otherwise mean 1 pixel).
+            # operator.index accepts only integer-like values (int, NumPy integers, integer 0-d
+            # tensors); bool is rejected explicitly because True would silently mean 1 pixel.
             size = None if isinstance(v, bool) else operator.index(v)  # type: ignore[arg-type]
         except TypeError:
             size = None
