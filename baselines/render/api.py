@@ -17,7 +17,9 @@ from torch import Tensor
 
 from .backends import resolve_backend
 from .projection import Projection
-from .validate import require_image_size, validate_background, validate_camera, validate_gaussians
+from .validate import (
+    require_image_size, validate_background, validate_camera, validate_composite_inputs, validate_gaussians,
+)
 
 DEPTH_EPS = 1e-10
 
@@ -83,10 +85,9 @@ def composite(
         (features_img [H, W, C], depth [H, W, 1], alpha [H, W, 1]).
     """
     width, height = require_image_size(width, height)
-    if features.dim() != 2 or features.shape[0] != projection.depths.shape[0]:
-        raise ValueError(f"features must have shape [N, C] with N={projection.depths.shape[0]}, got {tuple(features.shape)}")
-    if opacities.shape != projection.depths.shape:
-        raise ValueError(f"opacities must have shape [N] with N={projection.depths.shape[0]}, got {tuple(opacities.shape)}")
+    if not isinstance(projection, Projection):
+        raise ValueError(f"projection must be a Projection (from project_gaussians), got {type(projection).__name__}")
+    validate_composite_inputs(projection.means2d, projection.depths.shape[0], opacities, features)
     validate_background(background, features.shape[1], features)
     return _composite(resolve_backend(backend, features.device), projection, opacities, features, width, height, background)
 

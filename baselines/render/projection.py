@@ -122,7 +122,7 @@ def project_gaussians_torch(
     p_cam = means @ R.T + t  # [N, 3]
     x, y, z = p_cam.unbind(-1)
 
-    in_depth_range = (z > near) & (z < far)
+    in_depth_range = (z >= near) & (z <= far)  # gsplat culls z < near or z > far
     # Safe stand-ins for invisible Gaussians so that no inf/NaN reaches any gradient.
     z_safe = torch.where(in_depth_range, z, torch.ones_like(z))
     x_safe = torch.where(in_depth_range, x, torch.zeros_like(x))

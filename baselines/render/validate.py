@@ -5,6 +5,8 @@ over the inputs (an isfinite reduction per tensor), negligible next to rasteriza
 """
 from __future__ import annotations
 
+import operator
+
 import torch
 from torch import Tensor
 
@@ -23,12 +25,18 @@ def _require_shape(name: str, value: Tensor, shape: tuple[int | None, ...], mean
 
 def require_image_size(width: object, height: object) -> tuple[int, int]:
     """Check that width and height are positive Python/NumPy integers; return them as int."""
+    sizes = []
     for name, v in (("width", width), ("height", height)):
-        if isinstance(v, bool) or not hasattr(v, "__index__"):
+        try:
+            # operator.index accepts only integer-like values (int, NumPy integers, integer 0-d
+            # tensors); bool is rejected explicitly because True would silently mean 1 pixel.
+            size = None if isinstance(v, bool) else operator.index(v)  # type: ignore[arg-type]
+        except TypeError:
+            size = None
+        if size is None or size <= 0:
             raise ValueError(f"{name} must be a positive integer, got {v!r}")
-        if int(v) <= 0:
-            raise ValueError(f"{name} must be a positive integer, got {int(v)}")
-    return int(width), int(height)  # type: ignore[call-overload]
+        sizes.append(int(size))
+    return sizes[0], sizes[1]
 
 
 def validate_camera(viewmat: object, K: object, reference: Tensor) -> None:
@@ -100,3 +108,23 @@ def validate_background(background: object, channels: int, reference: Tensor) ->
     _require_shape("background", t, (channels,), f"[C] with C={channels}")
     _require_same_kind("background", t, reference)
     _require_finite("background", t)
+
+
+def validate_composite_inputs(means2d: Tensor, n: int, opacities: object, features: object) -> None:
+    """Check the compositing stage's per-Gaussian inputs against a projection of N Gaussians.
+
+    opacities [N] in [0, 1] and features [N, C] (C >= 1): tensors of means2d's dtype and device,
+    all finite.
+    """
+    for name, value, shape, meaning in (("opacities", opacities, (n,), "[N]"), ("features", features, (n, None), "[N, C]")):
+        t = _require_tensor(name, value)
+        _require_shape(name, t, shape, f"{meaning} with N={n} (the projection's Gaussian count)")
+        if t.dtype != means2d.dtype:
+            raise ValueError(f"{name} has dtype {t.dtype} but the projection has {means2d.dtype}; use one floating dtype")
+        if t.device != means2d.device:
+            raise ValueError(f"{name} is on {t.device} but the projection is on {means2d.device}; use one device")
+        _require_finite(name, t)
+    if features.shape[1] < 1:  # type: ignore[union-attr]
+        raise ValueError("features must have at least one channel, got C=0")
+    if n and bool(((opacities < 0) | (opacities > 1)).any()):  # type: ignore[operator]
+        raise ValueError("opacities must lie in [0, 1] (activated values; did you pass logits?)")
