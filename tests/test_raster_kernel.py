@@ -330,6 +330,19 @@ def _fake_tiled_module(calls: list) -> types.ModuleType:
     return module
 
 
+def test_cpu_backend_uses_the_kernel_when_available(compiled, monkeypatch):
+    broken = types.ModuleType("baselines.render.composite_tiled")
+
+    def composite_tiled(*args, **kwargs):
+        raise AssertionError("the cpu backend fell back although the kernel is available")
+
+    broken.composite_tiled = composite_tiled
+    monkeypatch.setitem(sys.modules, "baselines.render.composite_tiled", broken)
+    monkeypatch.delenv(kernel.ENV_SWITCH, raising=False)
+    feats, _, alpha, meta = rasterize(**random_scene(50, 30, 20, 3), backend="cpu")
+    assert meta.backend == "cpu" and alpha.max() > 0
+
+
 def test_env_var_forces_torch_path_and_logs_once(monkeypatch, caplog):
     calls: list = []
     monkeypatch.setitem(sys.modules, "baselines.render.composite_tiled", _fake_tiled_module(calls))
