@@ -103,18 +103,17 @@ TileRect tile_rect(const Problem& p, int64_t tile) {
     return r;
 }
 
-// One Gaussian as seen by one tile: parameters and the pixel rectangle it can reach there.
+// One Gaussian's screen-space parameters, prepared once per pass (not once per tile).
 template <typename scalar_t>
 struct Splat {
     scalar_t mx, my, a, b, c, o;
     double sigma_cutoff;
+    double col_lo, col_hi, row_lo, row_hi;  // pixel columns / rows it can reach (unclipped)
     const scalar_t* feature;
-    int64_t jlo, jhi, ilo, ihi;  // inclusive pixel column / row range inside the tile
-    bool empty() const { return jlo > jhi || ilo > ihi; }
 };
 
 template <typename scalar_t>
-Splat<scalar_t> load_splat(const Problem& p, int64_t g, const TileRect& r) {
+Splat<scalar_t> prepare_splat(const Problem& p, int64_t g) {
     const scalar_t* m = static_cast<const scalar_t*>(p.means2d) + 2 * g;
     const scalar_t* q = static_cast<const scalar_t*>(p.conics) + 3 * g;
     Splat<scalar_t> s;
@@ -128,17 +127,31 @@ Splat<scalar_t> load_splat(const Problem& p, int64_t g, const TileRect& r) {
     // alpha >= 1/255 needs o exp(-sigma) >= 1/255, i.e. sigma <= ln(255 o) (-inf when o = 0).
     s.sigma_cutoff = std::log(255.0 * static_cast<double>(s.o)) + kSigmaCutoffMargin;
     // Pixel centres j + 0.5 within the radius of the mean, plus one pixel of slack per side (the
-    // radii bound the alpha >= 1/255 region; the slack absorbs rounding at its edge). Computed in
-    // double and clamped to the tile before converting, so huge radii cannot overflow.
+    // radii bound the alpha >= 1/255 region; the slack absorbs rounding at its edge). Kept in
+    // double and clamped to a tile before any conversion, so huge radii cannot overflow.
     const double rx = static_cast<double>(p.radii[2 * g]);
     const double ry = static_cast<double>(p.radii[2 * g + 1]);
-    const double mx = static_cast<double>(s.mx);
-    const double my = static_cast<double>(s.my);
-    s.jlo = static_cast<int64_t>(std::max<double>(r.x0, std::floor(mx - rx - 0.5)));
-    s.jhi = static_cast<int64_t>(std::min<double>(r.x1 - 1, std::ceil(mx + rx - 0.5)));
-    s.ilo = static_cast<int64_t>(std::max<double>(r.y0, std::floor(my - ry - 0.5)));
-    s.ihi = static_cast<int64_t>(std::min<double>(r.y1 - 1, std::ceil(my + ry - 0.5)));
+    s.col_lo = std::floor(static_cast<double>(s.mx) - rx - 0.5);
+    s.col_hi = std::ceil(static_cast<double>(s.mx) + rx - 0.5);
+    s.row_lo = std::floor(static_cast<double>(s.my) - ry - 0.5);
+    s.row_hi = std::ceil(static_cast<double>(s.my) + ry - 0.5);
     return s;
+}
+
+// The pixels of one tile a Gaussian can reach (inclusive ranges).
+struct Footprint {
+    int64_t jlo, jhi, ilo, ihi;
+    bool empty() const { return jlo > jhi || ilo > ihi; }
+};
+
+template <typename scalar_t>
+inline Footprint clip(const Splat<scalar_t>& s, const TileRect& r) {
+    Footprint f;
+    f.jlo = static_cast<int64_t>(std::max<double>(static_cast<double>(r.x0), s.col_lo));
+    f.jhi = static_cast<int64_t>(std::min<double>(static_cast<double>(r.x1 - 1), s.col_hi));
+    f.ilo = static_cast<int64_t>(std::max<double>(static_cast<double>(r.y0), s.row_lo));
+    f.ihi = static_cast<int64_t>(std::min<double>(static_cast<double>(r.y1 - 1), s.row_hi));
+    return f;
 }
 
 // Evaluation of one Gaussian at one pixel centre, in the oracle's operation order.
@@ -196,7 +209,8 @@ struct ForwardScratch {
 };
 
 template <typename scalar_t>
-void forward_tile(const Problem& p, int64_t tile, const ForwardOut<scalar_t>& out, ForwardScratch<scalar_t>& s) {
+void forward_tile(const Problem& p, const Splat<scalar_t>* splats, int64_t tile, const ForwardOut<scalar_t>& out,
+                  ForwardScratch<scalar_t>& s) {
     const TileRect r = tile_rect(p, tile);
     const int64_t npix = r.pixels();
     const int64_t C = p.channels;
@@ -208,13 +222,14 @@ void forward_tile(const Problem& p, int64_t tile, const ForwardOut<scalar_t>& ou
     const int64_t begin = p.offsets[tile];
     const int64_t end = p.offsets[tile + 1];
     for (int64_t k = begin; k < end && alive > 0; ++k) {
-        const Splat<scalar_t> g = load_splat<scalar_t>(p, p.gaussian_ids[k], r);
-        if (g.empty()) continue;
+        const Splat<scalar_t>& g = splats[p.gaussian_ids[k]];
+        const Footprint fp = clip(g, r);
+        if (fp.empty()) continue;
         const int32_t position = static_cast<int32_t>(k - begin + 1);
-        for (int64_t i = g.ilo; i <= g.ihi; ++i) {
+        for (int64_t i = fp.ilo; i <= fp.ihi; ++i) {
             const scalar_t py = static_cast<scalar_t>(i) + static_cast<scalar_t>(0.5);
             const int64_t row = (i - r.y0) * r.width() - r.x0;
-            for (int64_t j = g.jlo; j <= g.jhi; ++j) {
+            for (int64_t j = fp.jlo; j <= fp.jhi; ++j) {
                 const int64_t q = row + j;
                 if (s.done[q]) continue;
                 Eval<scalar_t> e;
@@ -266,8 +281,8 @@ struct BackwardScratch {
 constexpr int64_t kSlotFixed = 6;
 
 template <typename scalar_t>
-void backward_tile(const Problem& p, int64_t tile, const BackwardIn<scalar_t>& in, scalar_t* slots,
-                   BackwardScratch<scalar_t>& s) {
+void backward_tile(const Problem& p, const Splat<scalar_t>* splats, int64_t tile, const BackwardIn<scalar_t>& in,
+                   scalar_t* slots, BackwardScratch<scalar_t>& s) {
     const TileRect r = tile_rect(p, tile);
     const int64_t npix = r.pixels();
     const int64_t C = p.channels;
@@ -293,16 +308,17 @@ void backward_tile(const Problem& p, int64_t tile, const BackwardIn<scalar_t>& i
     }
     const int64_t begin = p.offsets[tile];
     for (int64_t k = begin + max_last - 1; k >= begin; --k) {
-        const Splat<scalar_t> g = load_splat<scalar_t>(p, p.gaussian_ids[k], r);
+        const Splat<scalar_t>& g = splats[p.gaussian_ids[k]];
+        const Footprint fp = clip(g, r);
         scalar_t* slot = slots + k * stride;
-        if (g.empty()) continue;  // slot stays zero
+        if (fp.empty()) continue;  // slot stays zero
         const int32_t position = static_cast<int32_t>(k - begin);
         double g_mx = 0, g_my = 0, g_a = 0, g_b = 0, g_c = 0, g_o = 0;
         std::fill(s.g_feature.begin(), s.g_feature.end(), 0.0);
-        for (int64_t i = g.ilo; i <= g.ihi; ++i) {
+        for (int64_t i = fp.ilo; i <= fp.ihi; ++i) {
             const scalar_t py = static_cast<scalar_t>(i) + static_cast<scalar_t>(0.5);
             const int64_t row = (i - r.y0) * r.width() - r.x0;
-            for (int64_t j = g.jlo; j <= g.jhi; ++j) {
+            for (int64_t j = fp.jlo; j <= fp.jhi; ++j) {
                 const int64_t q = row + j;
                 if (position >= s.last[q]) continue;  // behind this pixel's last contributor
                 Eval<scalar_t> e;
@@ -496,12 +512,25 @@ Problem make_problem(const void* means2d, const void* conics, const void* opacit
     return p;
 }
 
+// Splat parameters of every Gaussian, computed in parallel blocks (each entry written once).
+template <typename scalar_t>
+std::vector<Splat<scalar_t>> prepare_splats(const Problem& p, int64_t threads) {
+    std::vector<Splat<scalar_t>> splats(static_cast<size_t>(p.num_gaussians));
+    const int64_t block = 4096;
+    parallel_items((p.num_gaussians + block - 1) / block, threads, [&](int64_t b, int64_t) {
+        const int64_t end = std::min(p.num_gaussians, (b + 1) * block);
+        for (int64_t g = b * block; g < end; ++g) splats[g] = prepare_splat<scalar_t>(p, g);
+    });
+    return splats;
+}
+
 template <typename scalar_t>
 int forward(const Problem& p, int64_t threads, const ForwardOut<scalar_t>& out) {
     const int64_t workers = std::max<int64_t>(1, threads);
+    const std::vector<Splat<scalar_t>> splats = prepare_splats<scalar_t>(p, workers);
     std::vector<ForwardScratch<scalar_t>> scratch(static_cast<size_t>(workers));
     parallel_items(p.tiles_x * p.tiles_y, workers,
-                   [&](int64_t tile, int64_t w) { forward_tile<scalar_t>(p, tile, out, scratch[w]); });
+                   [&](int64_t tile, int64_t w) { forward_tile<scalar_t>(p, splats.data(), tile, out, scratch[w]); });
     return 0;
 }
 
@@ -510,9 +539,11 @@ int backward(const Problem& p, int64_t threads, const BackwardIn<scalar_t>& in, 
     const int64_t workers = std::max<int64_t>(1, threads);
     const int64_t M = p.offsets[p.tiles_x * p.tiles_y];
     std::vector<scalar_t> slots(static_cast<size_t>(M * (kSlotFixed + p.channels)), scalar_t(0));
+    const std::vector<Splat<scalar_t>> splats = prepare_splats<scalar_t>(p, workers);
     std::vector<BackwardScratch<scalar_t>> scratch(static_cast<size_t>(workers));
-    parallel_items(p.tiles_x * p.tiles_y, workers,
-                   [&](int64_t tile, int64_t w) { backward_tile<scalar_t>(p, tile, in, slots.data(), scratch[w]); });
+    parallel_items(p.tiles_x * p.tiles_y, workers, [&](int64_t tile, int64_t w) {
+        backward_tile<scalar_t>(p, splats.data(), tile, in, slots.data(), scratch[w]);
+    });
     reduce_slots<scalar_t>(p, slots.data(), workers, out);
     return 0;
 }
