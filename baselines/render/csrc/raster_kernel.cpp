@@ -49,6 +49,8 @@
 #include <cstdint>
 #include <exception>
 #include <functional>
+#include <mutex>
+#include <system_error>
 #include <thread>
 #include <vector>
 
@@ -174,7 +176,9 @@ inline bool evaluate(const Splat<scalar_t>& s, scalar_t px, scalar_t py, Eval<sc
     return e.alpha >= Rules<scalar_t>::alpha_min;
 }
 
-// Runs fn(item, worker) for item in [0, n) on `threads` workers with a dynamic schedule.
+// Runs fn(item, worker) for item in [0, n) on `threads` workers with a dynamic schedule. An
+// exception in any worker stops the others and is rethrown here after all have joined; if a
+// thread cannot be started, the workers already running finish the items.
 void parallel_items(int64_t n, int64_t threads, const std::function<void(int64_t, int64_t)>& fn) {
     threads = std::max<int64_t>(1, std::min<int64_t>(threads, n));
     if (threads == 1) {
@@ -182,14 +186,29 @@ void parallel_items(int64_t n, int64_t threads, const std::function<void(int64_t
         return;
     }
     std::atomic<int64_t> next{0};
+    std::mutex error_mutex;
+    std::exception_ptr error;
     auto worker = [&](int64_t w) {
-        for (int64_t i = next.fetch_add(1); i < n; i = next.fetch_add(1)) fn(i, w);
+        try {
+            for (int64_t i = next.fetch_add(1); i < n; i = next.fetch_add(1)) fn(i, w);
+        } catch (...) {
+            std::lock_guard<std::mutex> lock(error_mutex);
+            if (!error) error = std::current_exception();
+            next.store(n);
+        }
     };
     std::vector<std::thread> pool;
     pool.reserve(static_cast<size_t>(threads - 1));
-    for (int64_t w = 1; w < threads; ++w) pool.emplace_back(worker, w);
+    for (int64_t w = 1; w < threads; ++w) {
+        try {
+            pool.emplace_back(worker, w);
+        } catch (const std::system_error&) {
+            break;
+        }
+    }
     worker(0);
     for (auto& t : pool) t.join();
+    if (error) std::rethrow_exception(error);
 }
 
 template <typename scalar_t>
