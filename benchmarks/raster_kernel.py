@@ -8,11 +8,15 @@ projection: forward, and forward + backward of a random linear loss on image and
 means2d, conics, opacities and features. Medians over --repeats runs, in milliseconds; the ratio
 columns are (other / kernel) for forward + backward. Columns:
 
+- CPU: the kernel's forward + backward in process CPU time summed over threads; on a machine
+  shared with other work it shows the kernel's own cost where wall time does not.
+
 - kernel: baselines.render.kernel.composite_kernel (C++).
 - torch tiled: baselines.render.composite_tiled.composite_tiled when that module is present,
   else "n/a".
 - per-tile torch: a plain loop over tiles applying the reference's dense formula to each
-  tile's depth-sorted list (a minimal torch tiled renderer, for scale; autograd backward).
+  tile's depth-sorted list (a minimal torch tiled renderer, for scale; autograd backward);
+  only where pixels x Gaussians stays below --per-tile-limit.
 - reference: the dense oracle, only where pixels x Gaussians stays below --dense-limit.
 - rasterize: the whole `rasterize(backend="cpu")` forward + backward (projection included) down
   to means, quats, scales, opacities and features.
@@ -45,6 +49,7 @@ from baselines.render.projection import Projection, project_gaussians_torch  # n
 from baselines.render.tiles import bin_gaussians  # noqa: E402
 from baselines.render import rasterize  # noqa: E402
 
+PARAMS = ("means", "quats", "scales", "opacities", "features")
 Compositor = Callable[[Projection, torch.Tensor, torch.Tensor, int, int], "tuple[torch.Tensor, torch.Tensor]"]
 
 
@@ -98,9 +103,9 @@ def torch_tiled() -> Compositor | None:
     return composite_tiled
 
 
-def time_compositor(fn: Compositor, scene: dict, repeats: int) -> tuple[float, float]:
-    """(forward ms, forward + backward ms), medians."""
-    leaves = {k: scene[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "features")}
+def time_compositor(fn: Compositor, scene: dict, repeats: int) -> tuple[float, float, float]:
+    """(forward ms, forward + backward ms, forward + backward CPU ms of all threads), medians."""
+    leaves = {k: scene[k].clone().requires_grad_(True) for k in PARAMS}
     proj = project_gaussians_torch(leaves["means"], leaves["quats"], leaves["scales"], scene["viewmat"], scene["K"],
                                    scene["width"], scene["height"], leaves["opacities"])
     depth = proj.depths.detach().unsqueeze(1)
@@ -114,25 +119,27 @@ def time_compositor(fn: Compositor, scene: dict, repeats: int) -> tuple[float, f
     g = torch.Generator().manual_seed(1)
     gi = torch.randn(h, w, feats.shape[1], generator=g)
     ga = torch.randn(h, w, 1, generator=g)
-    fwd, both = [], []
+    fwd, both, cpu = [], [], []
     for _ in range(repeats):
         t0 = time.perf_counter()
         with torch.no_grad():
             fn(p, opac, feats, w, h)
         t1 = time.perf_counter()
+        c1 = time.process_time()
         image, alpha = fn(p, opac, feats, w, h)
         torch.autograd.grad((image * gi).sum() + (alpha * ga).sum(), (means2d, conics, opac, feats))
         t2 = time.perf_counter()
+        cpu.append(time.process_time() - c1)
         fwd.append(t1 - t0)
         both.append(t2 - t1)
-    return 1e3 * statistics.median(fwd), 1e3 * statistics.median(both)
+    return 1e3 * statistics.median(fwd), 1e3 * statistics.median(both), 1e3 * statistics.median(cpu)
 
 
 def time_rasterize(scene: dict, repeats: int) -> float:
     """Median ms of rasterize(backend="cpu") forward + backward to the 3D parameters."""
     runs = []
     for _ in range(repeats):
-        leaves = {k: scene[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "features")}
+        leaves = {k: scene[k].clone().requires_grad_(True) for k in PARAMS}
         t0 = time.perf_counter()
         feats, depth, alpha, _ = rasterize(**{**scene, **leaves}, backend="cpu")
         (feats.sum() + depth.sum() + alpha.sum()).backward()
@@ -185,7 +192,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per entry (median reported)")
     parser.add_argument("--torch-repeats", type=int, default=3, help="timed runs for the torch compositors")
     parser.add_argument("--dense-limit", type=float, default=5e7, help="max pixels x Gaussians for the reference")
-    parser.add_argument("--no-per-tile", action="store_true", help="skip the per-tile torch column")
+    parser.add_argument("--per-tile-limit", type=float, default=2e9,
+                        help="max pixels x Gaussians for the per-tile torch column (0 skips it)")
     parser.add_argument("--compile", action="store_true", help="also time a cold build of the kernel")
     args = parser.parse_args(argv)
 
@@ -197,8 +205,8 @@ def main(argv: list[str] | None = None) -> None:
           f"load average at start {os.getloadavg()[0]:.2f}")
     if args.compile:
         print(f"cold kernel build: {time_cold_build():.2f} s")
-    header = ("| N | image | threads | kernel fwd | kernel fwd+bwd | torch tiled fwd+bwd | ratio | per-tile torch fwd+bwd "
-              "| ratio | reference fwd+bwd | ratio | rasterize fwd+bwd (cpu) |")
+    header = ("| N | image | threads | kernel fwd | kernel fwd+bwd | kernel fwd+bwd CPU | torch tiled fwd+bwd | ratio "
+              "| per-tile torch fwd+bwd | ratio | reference fwd+bwd | ratio | rasterize fwd+bwd (cpu) |")
     print()
     print(header)
     print("|" + "---|" * (header.count("|") - 1))
@@ -209,17 +217,20 @@ def main(argv: list[str] | None = None) -> None:
             torch.set_num_threads(threads)
             kfn = lambda p, o, f, w, h, t=threads: kernel.composite_kernel(p, o, f, w, h, num_threads=t)  # noqa: E731
             time_compositor(kfn, scene, 1)  # warm-up
-            k_fwd, k_both = time_compositor(kfn, scene, args.repeats)
+            k_fwd, k_both, k_cpu = time_compositor(kfn, scene, args.repeats)
             t_both = time_compositor(tiled, scene, args.torch_repeats)[1] if tiled else None
-            p_both = None if args.no_per_tile else time_compositor(per_tile_torch, scene, args.torch_repeats)[1]
+            p_both = None
+            if n * width * height <= args.per_tile_limit:
+                p_both = time_compositor(per_tile_torch, scene, args.torch_repeats)[1]
             r_both = None
             if n * width * height <= args.dense_limit:
                 r_both = time_compositor(composite_reference, scene, args.torch_repeats)[1]
             full = time_rasterize(scene, args.repeats)
-            print(f"| {n} | {width}x{height} | {threads} | {_fmt(k_fwd)} | {_fmt(k_both)} | {_fmt(t_both)} | "
-                  f"{_ratio(t_both, k_both)} | {_fmt(p_both)} | {_ratio(p_both, k_both)} | {_fmt(r_both)} | "
-                  f"{_ratio(r_both, k_both)} | {_fmt(full)} |", flush=True)
-    print(f"\nload average at end {os.getloadavg()[0]:.2f}; times in ms (median)")
+            print(f"| {n} | {width}x{height} | {threads} | {_fmt(k_fwd)} | {_fmt(k_both)} | {_fmt(k_cpu)} | "
+                  f"{_fmt(t_both)} | {_ratio(t_both, k_both)} | {_fmt(p_both)} | {_ratio(p_both, k_both)} | "
+                  f"{_fmt(r_both)} | {_ratio(r_both, k_both)} | {_fmt(full)} |", flush=True)
+    print(f"\nload average at end {os.getloadavg()[0]:.2f}; times in ms (median); CPU = process CPU time of "
+          "all threads (less sensitive to other load than wall time)")
 
 
 if __name__ == "__main__":

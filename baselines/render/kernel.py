@@ -323,7 +323,8 @@ def bin_gaussians_compiled(projection: Projection, width: int, height: int, tile
     means2d = projection.means2d.detach().contiguous()
     suffix = _SUPPORTED_DTYPES.get(means2d.dtype)
     if suffix is None or means2d.device.type != "cpu":
-        raise ValueError(f"bin_gaussians_compiled needs float32/float64 CPU tensors, got {means2d.dtype} on {means2d.device}")
+        raise ValueError(f"bin_gaussians_compiled needs float32/float64 CPU tensors, got {means2d.dtype} "
+                         f"on {means2d.device}")
     depths = projection.depths.detach().to(means2d.dtype).contiguous()
     radii = projection.radii.detach().to(torch.int32).contiguous()
     visible = projection.visible.detach().to(torch.uint8).contiguous()
