@@ -38,6 +38,14 @@ def _composite_reference(projection: Projection, opacities: Tensor, features: Te
 
 
 def _composite_cpu(projection: Projection, opacities: Tensor, features: Tensor, width: int, height: int):
+    # The compiled kernel when it builds and fits the tensors; else the torch tiled path, with
+    # the reason logged once (no compiler, build failure, REFLOW4DGS_CPU_KERNEL=0, dtype, device).
+    from .kernel import composite_kernel, log_fallback_once, unusable_reason
+
+    reason = unusable_reason(features)
+    if reason is None:
+        return composite_kernel(projection, opacities, features, width, height)
+    log_fallback_once(reason)
     from .composite_tiled import composite_tiled
 
     return composite_tiled(projection, opacities, features, width, height)

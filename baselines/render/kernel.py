@@ -1,0 +1,391 @@
+"""Compiled CPU compositor: the C++ kernel of csrc/raster_kernel.cpp behind a torch autograd Function.
+
+    composite_kernel(projection, opacities [N], features [N, C], width, height, num_threads=None)
+        -> (image [H, W, C] without background, alpha [H, W, 1])
+
+Only the compositing stage is compiled; projection stays in torch, and the gradients this module
+returns for means2d, conics, opacities and features flow on through autograd to means, quats and
+scales (and reach `meta.means2d.grad` for densification). The rules and the oracle are those of
+composite_reference.py; the C++ header comment explains the tiling, the early exits and why the
+backward pass is bitwise deterministic across thread counts.
+
+Building. The kernel is a plain C++17 shared library without Python or torch headers, compiled
+with the system compiler (`$CXX`, else c++, g++ or clang++) on first use and loaded with ctypes;
+tensors are passed as raw pointers to contiguous memory. That takes about 2 s, where a
+`torch.utils.cpp_extension` build spends most of a minute parsing torch headers, and it needs no
+ninja. The flags are portable (-O3, no -march=native), so a cache shared by machines of one
+architecture stays valid. The library is cached under `$REFLOW4DGS_KERNEL_CACHE`, else
+`$XDG_CACHE_HOME/reflow4dgs/kernels`, else `~/.cache/reflow4dgs/kernels`, in a file named by a hash
+of the source, the compiler (path and `--version`), the flags and the platform; the torch version
+is not part of the key because the library does not link torch. Each build writes into a private
+temporary directory and is moved into place with an atomic rename, so processes that build at
+the same time (pytest-xdist, two trainings) never see a torn file.
+
+Switches: `REFLOW4DGS_CPU_KERNEL=0` (or false/off/no) makes the cpu backend use the torch tiled
+path. Without a compiler, or when the build fails, `kernel_available()` returns (False, reason)
+and the cpu backend falls back likewise, logging the reason once.
+
+Dtypes: float32 and float64 both run compiled (the kernel is templated on the scalar type);
+other dtypes (float16, bfloat16) and non-CPU tensors take the torch tiled path.
+"""
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import logging
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+from pathlib import Path
+
+import torch
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+from .projection import Projection
+from .tiles import TILE_SIZE, TileBins
+
+logger = logging.getLogger(__name__)
+
+ENV_SWITCH = "REFLOW4DGS_CPU_KERNEL"
+ENV_CACHE_DIR = "REFLOW4DGS_KERNEL_CACHE"
+ENV_COMPILER = "CXX"
+SOURCE = Path(__file__).resolve().parent / "csrc" / "raster_kernel.cpp"
+ABI_VERSION = 1  # must equal kAbiVersion in the C++ source
+CXX_FLAGS = ("-O3", "-std=c++17", "-shared", "-fPIC", "-ffp-contract=off", "-pthread")
+COMPILE_TIMEOUT_S = 600
+_SUPPORTED_DTYPES = {torch.float32: "f32", torch.float64: "f64"}
+_OFF_VALUES = {"0", "false", "off", "no"}
+
+
+class KernelUnavailable(RuntimeError):
+    """The compiled kernel cannot be built or loaded; the message says why."""
+
+
+def disabled_by_env() -> str | None:
+    """The reason the kernel is switched off by the environment, or None."""
+    value = os.environ.get(ENV_SWITCH, "").strip().lower()
+    if value in _OFF_VALUES:
+        return f"the compiled CPU kernel is disabled by {ENV_SWITCH}={os.environ[ENV_SWITCH]}"
+    return None
+
+
+def cache_dir() -> Path:
+    """Directory holding built kernel libraries (see the module docstring for the lookup order)."""
+    explicit = os.environ.get(ENV_CACHE_DIR)
+    if explicit:
+        return Path(explicit).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base).expanduser() / "reflow4dgs" / "kernels"
+
+
+def find_compiler() -> str | None:
+    """Absolute path of the C++ compiler to use: $CXX, else the first of c++, g++, clang++."""
+    candidates = [os.environ[ENV_COMPILER]] if os.environ.get(ENV_COMPILER) else ["c++", "g++", "clang++"]
+    for name in candidates:
+        found = shutil.which(name)
+        if found:
+            return found
+    return None
+
+
+def _compiler_identity(compiler: str) -> str:
+    try:
+        proc = subprocess.run([compiler, "--version"], capture_output=True, text=True, timeout=60)
+    except (OSError, subprocess.SubprocessError) as exc:
+        raise KernelUnavailable(f"the C++ compiler {compiler} does not run ({exc})") from exc
+    return proc.stdout + proc.stderr
+
+
+def library_path(compiler: str) -> Path:
+    """Cache path of the library built from the current source with `compiler`."""
+    key = hashlib.sha256()
+    for part in (
+        SOURCE.read_bytes(),
+        str(ABI_VERSION).encode(),
+        compiler.encode(),
+        _compiler_identity(compiler).encode(),
+        " ".join(CXX_FLAGS).encode(),
+        f"{sys.platform}-{platform.machine()}".encode(),
+    ):
+        key.update(part)
+        key.update(b"\0")
+    return cache_dir() / f"raster_kernel-{key.hexdigest()[:24]}.so"
+
+
+def _build(compiler: str, target: Path) -> None:
+    """Compile the source into `target` atomically (private temp dir, then os.replace)."""
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp_dir = tempfile.mkdtemp(prefix=".build-", dir=target.parent)
+    except OSError as exc:
+        raise KernelUnavailable(f"cannot write the kernel cache {target.parent} ({exc}); set {ENV_CACHE_DIR}") from exc
+    try:
+        built = Path(tmp_dir) / target.name
+        cmd = [compiler, *CXX_FLAGS, str(SOURCE), "-o", str(built)]
+        try:
+            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=COMPILE_TIMEOUT_S)
+        except (OSError, subprocess.SubprocessError) as exc:
+            raise KernelUnavailable(f"running {' '.join(cmd)} failed ({exc})") from exc
+        if proc.returncode != 0:
+            tail = (proc.stderr or proc.stdout).strip()[-2000:]
+            raise KernelUnavailable(f"compiling {SOURCE.name} failed (exit {proc.returncode}): {' '.join(cmd)}\n{tail}")
+        os.replace(built, target)
+    finally:
+        shutil.rmtree(tmp_dir, ignore_errors=True)
+
+
+def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
+    ptr, i64 = ctypes.c_void_p, ctypes.c_int64
+    common = [ptr, ptr, ptr, ptr, ptr, i64, i64, ptr, ptr, i64, i64, i64, i64]
+    for suffix in _SUPPORTED_DTYPES.values():
+        forward = getattr(lib, f"rk_forward_{suffix}")
+        forward.argtypes = common + [ptr, ptr, ptr, ptr]
+        forward.restype = ctypes.c_int
+        backward = getattr(lib, f"rk_backward_{suffix}")
+        backward.argtypes = common + [ptr, ptr, ptr, ptr, ptr, ptr, ptr, ptr]
+        backward.restype = ctypes.c_int
+        count = getattr(lib, f"rk_bin_count_{suffix}")
+        count.argtypes = [ptr, ptr, ptr, i64, i64, i64, i64, ptr]
+        count.restype = i64
+        fill = getattr(lib, f"rk_bin_fill_{suffix}")
+        fill.argtypes = [ptr, ptr, ptr, ptr, i64, i64, i64, i64, ptr, ptr]
+        fill.restype = ctypes.c_int
+    lib.rk_abi_version.argtypes = []
+    lib.rk_abi_version.restype = ctypes.c_int
+    version = lib.rk_abi_version()
+    if version != ABI_VERSION:
+        raise KernelUnavailable(f"kernel library reports ABI version {version}, expected {ABI_VERSION}")
+    return lib
+
+
+def _load_or_build() -> ctypes.CDLL:
+    if not SOURCE.is_file():
+        raise KernelUnavailable(f"kernel source {SOURCE} is missing from the installation")
+    compiler = find_compiler()
+    if compiler is None:
+        wanted = f"$CXX={os.environ[ENV_COMPILER]!r}" if os.environ.get(ENV_COMPILER) else "c++, g++ or clang++"
+        raise KernelUnavailable(f"no C++ compiler found ({wanted} not on PATH)")
+    target = library_path(compiler)
+    if target.is_file():
+        try:
+            return _bind(ctypes.CDLL(str(target)))
+        except (OSError, AttributeError, KernelUnavailable) as exc:
+            logger.warning("cached kernel %s does not load (%s); rebuilding it", target, exc)
+    _build(compiler, target)
+    try:
+        return _bind(ctypes.CDLL(str(target)))
+    except (OSError, AttributeError) as exc:
+        raise KernelUnavailable(f"the freshly built kernel {target} does not load ({exc})") from exc
+
+
+_lock = threading.Lock()
+_library: ctypes.CDLL | None = None
+_load_error: str | None = None
+
+
+def load_library() -> ctypes.CDLL:
+    """The loaded kernel library, building it on first use (one attempt per process).
+
+    Raises:
+        KernelUnavailable: with the reason (no compiler, build failure, unwritable cache, ...).
+    """
+    global _library, _load_error
+    with _lock:
+        if _library is None and _load_error is None:
+            try:
+                _library = _load_or_build()
+            except KernelUnavailable as exc:
+                _load_error = str(exc)
+        if _library is None:
+            raise KernelUnavailable(_load_error)
+        return _library
+
+
+def kernel_available() -> tuple[bool, str]:
+    """(True, library path) when the compiled kernel can run, else (False, the reason).
+
+    Builds the kernel on the first call in a process when needed; honours REFLOW4DGS_CPU_KERNEL.
+    """
+    reason = disabled_by_env()
+    if reason is not None:
+        return False, reason
+    try:
+        lib = load_library()
+    except KernelUnavailable as exc:
+        return False, str(exc)
+    return True, str(lib._name)
+
+
+def unusable_reason(features: Tensor) -> str | None:
+    """None when composite_kernel can handle tensors like `features`, else why not."""
+    if features.device.type != "cpu":
+        return f"the compiled CPU kernel needs CPU tensors, got {features.device}"
+    if features.dtype not in _SUPPORTED_DTYPES:
+        return f"the compiled CPU kernel supports float32 and float64, got {features.dtype}"
+    ok, reason = kernel_available()
+    return None if ok else reason
+
+
+_logged_reasons: set[str] = set()
+
+
+def log_fallback_once(reason: str) -> None:
+    """Log (once per distinct reason and process) that the cpu backend uses the torch tiled path."""
+    if reason in _logged_reasons:
+        return
+    _logged_reasons.add(reason)
+    level = logging.INFO if reason == disabled_by_env() else logging.WARNING
+    logger.log(level, "cpu backend: using the torch tiled compositor because %s", reason)
+
+
+def _ptr(t: Tensor) -> int:
+    return t.data_ptr()
+
+
+class _CompositeKernel(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, features, radii, offsets, gaussian_ids,
+                width: int, height: int, tile_size: int, num_threads: int):
+        lib = load_library()
+        suffix = _SUPPORTED_DTYPES[features.dtype]
+        means2d, conics, opacities, features = (t.detach().contiguous() for t in (means2d, conics, opacities, features))
+        radii = radii.detach().to(torch.int32).contiguous()
+        offsets = offsets.to(torch.int64).contiguous()
+        gaussian_ids = gaussian_ids.to(torch.int64).contiguous()
+        n, channels = features.shape
+        image = torch.empty(height, width, channels, dtype=features.dtype)
+        alpha = torch.empty(height, width, 1, dtype=features.dtype)
+        transmittance = torch.empty(height, width, dtype=torch.float64)
+        last = torch.empty(height, width, dtype=torch.int32)
+        status = getattr(lib, f"rk_forward_{suffix}")(
+            _ptr(means2d), _ptr(conics), _ptr(opacities), _ptr(features), _ptr(radii), n, channels,
+            _ptr(offsets), _ptr(gaussian_ids), width, height, tile_size, num_threads,
+            _ptr(image), _ptr(alpha), _ptr(transmittance), _ptr(last),
+        )
+        _check_status(status, "forward")
+        ctx.save_for_backward(means2d, conics, opacities, features, radii, offsets, gaussian_ids, transmittance, last)
+        ctx.geometry = (width, height, tile_size, num_threads)
+        return image, alpha
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_image, grad_alpha):
+        means2d, conics, opacities, features, radii, offsets, gaussian_ids, transmittance, last = ctx.saved_tensors
+        width, height, tile_size, num_threads = ctx.geometry
+        lib = load_library()
+        suffix = _SUPPORTED_DTYPES[features.dtype]
+        n, channels = features.shape
+        grad_image = grad_image.to(features.dtype).contiguous()
+        grad_alpha = grad_alpha.to(features.dtype).contiguous()
+        g_means2d = torch.zeros_like(means2d)
+        g_conics = torch.zeros_like(conics)
+        g_opacities = torch.zeros_like(opacities)
+        g_features = torch.zeros_like(features)
+        status = getattr(lib, f"rk_backward_{suffix}")(
+            _ptr(means2d), _ptr(conics), _ptr(opacities), _ptr(features), _ptr(radii), n, channels,
+            _ptr(offsets), _ptr(gaussian_ids), width, height, tile_size, num_threads,
+            _ptr(transmittance), _ptr(last), _ptr(grad_image), _ptr(grad_alpha),
+            _ptr(g_means2d), _ptr(g_conics), _ptr(g_opacities), _ptr(g_features),
+        )
+        _check_status(status, "backward")
+        needs = ctx.needs_input_grad
+        grads = (g_means2d, g_conics, g_opacities, g_features)
+        return tuple(g if needs[i] else None for i, g in enumerate(grads)) + (None,) * 7
+
+
+def _check_status(status: int, stage: str) -> None:
+    if status == 2:
+        raise MemoryError(f"the compiled CPU kernel ran out of memory in its {stage} pass")
+    if status != 0:
+        raise RuntimeError(f"the compiled CPU kernel failed in its {stage} pass (status {status})")
+
+
+def bin_gaussians_compiled(projection: Projection, width: int, height: int, tile_size: int = TILE_SIZE) -> TileBins:
+    """Compiled equivalent of tiles.bin_gaussians: the same per-tile, front-to-back lists.
+
+    A counting sort in C++ (O(N log N + M) for M intersections) instead of torch's sort of all
+    intersection keys; it also avoids a dozen small torch ops per view.
+
+    Args:
+        projection: CPU projection of N Gaussians (means2d, radii, depths, visible are read).
+        width, height: image size in pixels.
+    Returns:
+        TileBins with offsets [tiles + 1] and gaussian_ids [M] (int64).
+    Raises:
+        KernelUnavailable: the kernel cannot be built or loaded.
+    """
+    lib = load_library()
+    means2d = projection.means2d.detach().contiguous()
+    suffix = _SUPPORTED_DTYPES.get(means2d.dtype)
+    if suffix is None or means2d.device.type != "cpu":
+        raise ValueError(f"bin_gaussians_compiled needs float32/float64 CPU tensors, got {means2d.dtype} "
+                         f"on {means2d.device}")
+    depths = projection.depths.detach().to(means2d.dtype).contiguous()
+    radii = projection.radii.detach().to(torch.int32).contiguous()
+    visible = projection.visible.detach().to(torch.uint8).contiguous()
+    n = means2d.shape[0]
+    tiles_x = (width + tile_size - 1) // tile_size
+    tiles_y = (height + tile_size - 1) // tile_size
+    offsets = torch.empty(tiles_x * tiles_y + 1, dtype=torch.int64)
+    total = getattr(lib, f"rk_bin_count_{suffix}")(_ptr(means2d), _ptr(radii), _ptr(visible), n, width, height,
+                                                   tile_size, _ptr(offsets))
+    if total < 0:
+        raise RuntimeError("the compiled CPU kernel failed while counting tile intersections")
+    gaussian_ids = torch.empty(total, dtype=torch.int64)
+    status = getattr(lib, f"rk_bin_fill_{suffix}")(_ptr(means2d), _ptr(radii), _ptr(visible), _ptr(depths), n, width,
+                                                  height, tile_size, _ptr(offsets), _ptr(gaussian_ids))
+    _check_status(status, "binning")
+    return TileBins(tile_size, tiles_x, tiles_y, offsets, gaussian_ids)
+
+
+def composite_kernel(
+    projection: Projection,
+    opacities: Tensor,
+    features: Tensor,
+    width: int,
+    height: int,
+    num_threads: int | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Tiled front-to-back compositing in compiled C++ (same rules and outputs as the reference).
+
+    Args:
+        projection: projection stage output for N Gaussians (means2d, conics, radii, depths and
+            visible are read; gradients flow back to means2d and conics).
+        opacities: [N] activated opacities. features: [N, C], any C >= 1.
+        width, height: image size in pixels.
+        num_threads: worker threads (default torch.get_num_threads()); results are bitwise
+            identical for every value.
+    Returns:
+        (image [H, W, C] without background, alpha [H, W, 1]), differentiable w.r.t. means2d,
+        conics, opacities and features.
+    Raises:
+        KernelUnavailable: the kernel cannot be built or loaded (see kernel_available()).
+        ValueError: tensors not on the CPU, not float32/float64, or of mixed dtypes/shapes.
+    """
+    tensors = {"means2d": projection.means2d, "conics": projection.conics, "depths": projection.depths,
+               "opacities": opacities, "features": features}
+    dtype = projection.means2d.dtype
+    if dtype not in _SUPPORTED_DTYPES:
+        raise ValueError(f"composite_kernel supports float32 and float64, means2d is {dtype}")
+    for name, t in tensors.items():
+        if t.device.type != "cpu":
+            raise ValueError(f"composite_kernel needs CPU tensors, {name} is on {t.device}")
+        if t.dtype != dtype:
+            raise ValueError(f"composite_kernel needs tensors of one dtype: means2d is {dtype} but {name} is {t.dtype}")
+    n = projection.means2d.shape[0]
+    if features.dim() != 2 or features.shape[0] != n or features.shape[1] < 1 or opacities.shape != (n,):
+        raise ValueError(f"composite_kernel needs opacities [N] and features [N, C>=1] with N={n}, got "
+                         f"{tuple(opacities.shape)} and {tuple(features.shape)}")
+    threads = int(num_threads) if num_threads is not None else torch.get_num_threads()
+    if threads < 1:
+        raise ValueError(f"num_threads must be >= 1, got {threads}")
+    bins = bin_gaussians_compiled(projection, int(width), int(height))
+    return _CompositeKernel.apply(
+        projection.means2d, projection.conics, opacities, features, projection.radii, bins.offsets,
+        bins.gaussian_ids, int(width), int(height), bins.tile_size, threads,
+    )
