@@ -144,3 +144,61 @@ def run_cli(entry: Callable[[], int]) -> None:
             raise
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
+
+
+def render_from_argv(argv: list[str]) -> dict[str, Path]:
+    """The whole of render.py: load a trained model directory and write its renders.
+
+    Writes <model>/{train,test}/ours_<iter>/{renders,gt,depth}/, updates results.json with the
+    test metrics, and renders <model>/video/ours_<iter>/video_rgb.mp4. Plugins and component
+    toggles are restored from the model directory's saved configuration.
+    """
+    from arguments import parse_render_args, peek_plugins
+    from baselines.data import load_scene
+
+    from .checkpoint import find_latest_iteration, point_cloud_dir
+
+    logging.basicConfig(level=logging.INFO, format="[%(name)s] %(message)s")
+    plugin_classes = [load_plugin_class(name) for name in peek_plugins(argv, from_model_dir=True)]
+    extra_groups: dict[str, type] = {}
+    for cls in plugin_classes:
+        extra_groups.update(cls.param_groups)
+    args = parse_render_args(argv, extra_groups=extra_groups)
+    components = resolve_components(plugin_classes, args.run.disable, args.run.enable)
+    model_path = Path(args.model.model_path)
+    iteration = args.render.iteration
+    if iteration < 0:
+        iteration = find_latest_iteration(model_path)
+        if iteration is None:
+            raise FileNotFoundError(f"{model_path}: no point_cloud/iteration_N folder to render")
+    pc_dir = point_cloud_dir(model_path, iteration)
+    if not (pc_dir / "point_cloud.ply").is_file():
+        raise FileNotFoundError(f"{pc_dir}: no point_cloud.ply (trained iterations: {find_latest_iteration(model_path)})")
+    scene = load_scene(
+        args.model.source_path, dataset_type=args.model.dataset_type, images=args.model.images,
+        resolution=args.model.resolution, eval=args.model.eval,
+        white_background=args.model.white_background, llffhold=args.model.llffhold,
+    )
+    plugins = [cls({g: args.extra[g] for g in cls.param_groups}, components[cls.name]) for cls in plugin_classes]
+    trainer = Trainer(args, scene, plugins, model_path)
+    trainer.load_model_from(pc_dir)
+    model, background, backend = trainer.ctx.model, trainer.ctx.background, args.pipe.backend
+    method = f"ours_{iteration}"
+    written: dict[str, Path] = {}
+    for split, cams, skip in (("train", trainer.train_cameras, args.render.skip_train),
+                              ("test", trainer.test_cameras, args.render.skip_test)):
+        if skip or not cams:
+            continue
+        out = model_path / split / method
+        result = evaluate_cameras(model, cams, "fine", background, backend, out_dir=out)
+        if split == "test":
+            write_metrics(model_path, method, result)
+        written[split] = out
+        print(f"[render] {split}: {len(cams)} views -> {out} (PSNR {result.mean['PSNR']:.3f})")
+    if not args.render.skip_video and scene.video_cameras:
+        cams = [c.to(trainer.device) for c in scene.video_cameras]
+        written["video"] = render_video(model, cams, "fine", background,
+                                        model_path / "video" / method / "video_rgb.mp4", backend)
+        print(f"[render] video -> {written['video']}")
+    trainer.run_log.close()
+    return written

@@ -2,7 +2,8 @@
 
 Order of hook calls in one training run (see trainer.py):
 
-    on_scene_loaded -> initial_point_cloud -> build_model -> on_model_created [-> on_load]
+    on_scene_loaded -> initial_point_cloud -> build_model -> on_model_created
+      (or, starting from a point_cloud/iteration_N folder: on_scene_loaded -> build_model -> on_load)
     for stage in ("coarse", "fine"):
         on_stage_start
         every iteration:

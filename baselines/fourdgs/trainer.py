@@ -109,8 +109,7 @@ class Trainer:
         model = self.hooks.first("build_model", ctx)
         if model is None:
             model = GaussianModel(self.args.model.sh_degree, self.hidden)
-        model.to(self.device) if hasattr(model, "to") else None
-        model.create_from_pcd(ctx.point_cloud.points, ctx.point_cloud.colors, self.cameras_extent)
+        model.create_from_pcd(ctx.point_cloud.points, ctx.point_cloud.colors, self.cameras_extent, device=self.device)
         ctx.model = model
         self.hooks.call("on_model_created", ctx)
         self.run_log.event("model_created", num_gaussians=model.num_gaussians, point_cloud_source=ctx.point_cloud_source)
@@ -229,7 +228,8 @@ class Trainer:
             ctx.model, self.opt, ctx.iteration, ctx.stage, self.cameras_extent, visible, radii.float(),
             torch.stack(grads).sum(dim=0), cam.width, cam.height,
         )
-        if ctx.densify_record is not None and getattr(ctx.densify_record, "changed", False):
+        record = ctx.densify_record
+        if record.densify_ran or record.prune_ran or record.opacity_reset:
             self.hooks.call("post_densify", ctx)
 
     # ------------------------------------------------------------------ evaluation
@@ -275,6 +275,24 @@ class Trainer:
         self.run_log.event("checkpoint", path=str(path))
         return path
 
+    def load_model_from(self, point_cloud_dir: Path) -> None:
+        """Build the model (a plugin may replace it) and load a point_cloud/iteration_N folder.
+
+        Used to continue from a 4DGS output (the upgrade path) and by render.py. No initial cloud
+        is computed; plugins get `on_load` (not `on_model_created`) and must (re)create the
+        per-Gaussian buffers a 4DGS folder lacks.
+        """
+        ctx = self.ctx
+        self.hooks.call("on_scene_loaded", ctx)
+        model = self.hooks.first("build_model", ctx)
+        if model is None:
+            model = GaussianModel(self.args.model.sh_degree, self.hidden)
+        load_point_cloud_dir(point_cloud_dir, model, device=self.device)
+        model.spatial_lr_scale = self.cameras_extent
+        ctx.model, ctx.point_cloud_source = model, f"checkpoint {point_cloud_dir}"
+        self.hooks.call("on_load", ctx, point_cloud_dir)
+        self.run_log.event("loaded", path=str(point_cloud_dir), num_gaussians=model.num_gaussians)
+
     def _resume_point(self) -> dict[str, Any] | None:
         """Interpret --start_checkpoint: a chkpnt_*.pth (exact resume) or a point_cloud dir (upgrade)."""
         spec = self.run.start_checkpoint
@@ -283,24 +301,23 @@ class Trainer:
         path = Path(spec)
         if path.is_dir():
             pc_dir = latest_point_cloud_dir(path)
-            self.build()
-            load_point_cloud_dir(pc_dir, self.ctx.model)
-            self.hooks.call("on_load", self.ctx, pc_dir)
-            self.run_log.event("loaded", path=str(pc_dir), num_gaussians=self.ctx.model.num_gaussians)
-            # A 4DGS output is a trained fine-stage model: continue in the fine stage from 0.
+            self.load_model_from(pc_dir)
+            # A 4DGS output is a trained model: continue in the fine stage from iteration 0.
             return {"stage": "fine", "point_cloud_dir": pc_dir}
         if not path.is_file():
             raise FileNotFoundError(f"--start_checkpoint {spec}: no such file or directory")
         state = load_training_state(path)
-        return {"stage": state["stage"], "training_state": state, "path": path}
+        if state.stage not in STAGES:
+            raise ValueError(f"--start_checkpoint {spec}: cannot tell its stage; name it chkpnt_<coarse|fine>_<N>.pth")
+        return {"stage": state.stage, "training_state": state, "path": path}
 
     def _restore(self, resume: dict[str, Any]) -> int:
         """Restore a training state into the freshly set-up stage; return its iteration."""
         if "training_state" not in resume:
             return 0
         state = resume["training_state"]
-        self.ctx.model.restore(state["gaussians"], self.opt)
-        extra = state.get("extra") or {}
+        self.ctx.model.restore(state.capture, self.opt)
+        extra = state.extra or {}
         if extra.get("torch_rng") is not None:
             torch.set_rng_state(extra["torch_rng"])
         if extra.get("cuda_rng") is not None and torch.cuda.is_available():
@@ -308,8 +325,8 @@ class Trainer:
         if extra.get("sampler") is not None:
             self.sampler.load_state_dict(extra["sampler"])
         self.hooks.load_state_dict(extra.get("plugins") or {})
-        self.run_log.event("resumed", path=str(resume["path"]), stage=state["stage"], iteration=state["iteration"])
-        return int(state["iteration"])
+        self.run_log.event("resumed", path=str(resume["path"]), stage=state.stage, iteration=state.iteration)
+        return int(state.iteration)
 
 
 def latest_point_cloud_dir(path: Path) -> Path:
