@@ -97,13 +97,13 @@ def test_field_matches_4dgs_recipe_with_custom_aabb():
     field.set_aabb([2.0, 1.0, 0.5], [-1.0, -3.0, 0.0])
     plain.load_state_dict(field.state_dict())
     pts = (torch.rand(500, 3) * 4 - 2).requires_grad_()
-    times = torch.rand(500, 1)
+    times = (torch.rand(500, 1) * 2.2 - 1.1).requires_grad_()  # t gradient too, beyond [-1, 1] as well
     weights = torch.randn(500, field.feat_dim)
     ours = field(pts, times)
     reference = plain(pts, times)
     torch.testing.assert_close(ours, reference, rtol=1e-5, atol=1e-6)
-    ours_params = [pts] + [p for p in field.parameters() if p.requires_grad]
-    ref_params = [pts] + [p for p in plain.parameters() if p.requires_grad]
+    ours_params = [pts, times] + [p for p in field.parameters() if p.requires_grad]
+    ref_params = [pts, times] + [p for p in plain.parameters() if p.requires_grad]
     ours_grads = torch.autograd.grad((ours * weights).sum(), ours_params)
     ref_grads = torch.autograd.grad((reference * weights).sum(), ref_params)
     for mine, theirs in zip(ours_grads, ref_grads):

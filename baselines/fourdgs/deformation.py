@@ -183,19 +183,16 @@ class Deformation(nn.Module):
         return self.feature_out(features)
 
     def head_outputs(self, hidden: Tensor) -> dict[str, Tensor]:
-        """Outputs of the enabled heads, run as one fused first layer and one block-diagonal second."""
+        """Outputs of the enabled heads (their leading ReLU of ``hidden`` is computed once)."""
         names = self.active_heads()
         if not names:
             return {}
-        heads = [getattr(self, name) for name in names]
-        first_w = torch.cat([h[1].weight for h in heads], 0)
-        first_b = torch.cat([h[1].bias for h in heads], 0)
-        second_w = torch.block_diag(*[h[3].weight for h in heads])
-        second_b = torch.cat([h[3].bias for h in heads], 0)
-        z = F.relu(F.linear(F.relu(hidden), first_w, first_b))
-        out = F.linear(z, second_w, second_b)
-        sizes = [h[3].out_features for h in heads]
-        return dict(zip(names, out.split(sizes, 1)))
+        activated = F.relu(hidden)
+        outputs = {}
+        for name in names:
+            head = getattr(self, name)
+            outputs[name] = head[3](F.relu(head[1](activated)))
+        return outputs
 
     def forward(self, state: GaussianState, times: Tensor) -> GaussianState:
         deltas = self.head_outputs(self.hidden(state.means, times))

@@ -13,12 +13,9 @@ Coordinates follow 4DGS exactly: points are mapped with ``(p - aabb[0]) * 2 / (a
 aabb[0]) - 1`` where ``aabb = [[max], [min]]`` (so max -> -1, min -> +1), and times are used
 as given (t in [0, 1] addresses the upper half of the time axis).
 
-Speed (why the lookup is not ``F.grid_sample``): on CPU, ``grid_sample``'s backward is a
-single-threaded per-channel scatter and dominates a 4DGS training step. Here a plane is viewed
-as a channels-last table [H*W, C] and a bilinear sample is a 4-row weighted ``embedding_bag``
-(one fused, vectorised kernel); the backward re-uses ``embedding_bag`` on the rows sorted by
-cell for the table gradient, and on derivative weights for the coordinate gradient. The
-result equals ``grid_sample`` to float rounding (tests check values and gradients).
+Speed: the lookups of all planes of all levels run as one ``plane_lookup`` call (a channels-last
+table and ``embedding_bag`` instead of 6 x levels ``grid_sample`` calls, whose CPU backward
+dominates a 4DGS training step). Values and gradients equal ``grid_sample``'s to float rounding.
 """
 
 from __future__ import annotations
@@ -28,92 +25,12 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
-from torch.autograd.function import once_differentiable
 
+from baselines.fourdgs.plane_lookup import PlaneLayout, plane_product_lookup, planes_to_table
 from baselines.fourdgs.regularization import hexplane_regularization
 
 PLANE_AXES: tuple[tuple[int, int], ...] = tuple(itertools.combinations(range(4), 2))
-
-
-# --------------------------------------------------------------------------------------------
-# Bilinear lookup on a channels-last table.
-class _BilinearTableSample(torch.autograd.Function):
-    """out[n] = sum_k w_k(n) * table[base[n] + shift_k], the 4 corners of a bilinear sample.
-
-    Differentiable in ``table`` [H*W, C] and the fractional offsets ``fx``, ``fy`` [N]; ``base``
-    [N] (long, the top-left cell) is not. ``row_step`` is W (or 0 when H == 1), ``col_step`` 1
-    (or 0 when W == 1), so a corner that would fall outside the plane always has weight 0.
-    """
-
-    @staticmethod
-    def forward(ctx, table: Tensor, base: Tensor, fx: Tensor, fy: Tensor, col_step: int, row_step: int):
-        gx, gy = 1.0 - fx, 1.0 - fy
-        corners = torch.stack((base, base + col_step, base + row_step, base + (col_step + row_step)), 1)
-        weights = torch.stack((gx * gy, fx * gy, gx * fy, fx * fy), 1)
-        out = F.embedding_bag(corners, table, per_sample_weights=weights, mode="sum")
-        ctx.save_for_backward(table, corners, fx, fy)
-        ctx.steps = (col_step, row_step)
-        return out
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, grad_out: Tensor):
-        table, corners, fx, fy = ctx.saved_tensors
-        col_step, row_step = ctx.steps
-        grad_out = grad_out.contiguous()
-        grad_table = grad_fx = grad_fy = None
-        gx, gy = 1.0 - fx, 1.0 - fy
-        if ctx.needs_input_grad[0]:
-            grad_table = _scatter_corners(
-                grad_out, corners[:, 0], (gx * gy, fx * gy, gx * fy, fx * fy),
-                (0, col_step, row_step, col_step + row_step), table.shape[0],
-            )
-        if ctx.needs_input_grad[2]:
-            d_weights = torch.stack((-gy, gy, -fy, fy), 1)
-            d_sample = F.embedding_bag(corners, table, per_sample_weights=d_weights, mode="sum")
-            grad_fx = (d_sample * grad_out).sum(1)
-        if ctx.needs_input_grad[3]:
-            d_weights = torch.stack((-gx, -fx, gx, fx), 1)
-            d_sample = F.embedding_bag(corners, table, per_sample_weights=d_weights, mode="sum")
-            grad_fy = (d_sample * grad_out).sum(1)
-        return grad_table, None, grad_fx, grad_fy, None, None
-
-
-def _scatter_corners(
-    grad_out: Tensor, base: Tensor, weights: Sequence[Tensor], shifts: Sequence[int], num_cells: int
-) -> Tensor:
-    """grad_table[base[n] + shift_k] += weights_k[n] * grad_out[n], summed over n and k.
-
-    Points are grouped by their top-left cell once (one sort of N keys); each corner is then a
-    bag-per-cell ``embedding_bag`` over ``grad_out`` whose result is shifted by the corner's
-    offset. This avoids both an [N, 4, C] intermediate and a serial index_add.
-    """
-    order = torch.argsort(base)
-    counts = torch.bincount(base, minlength=num_cells)
-    offsets = torch.cumsum(counts, 0) - counts
-    grad_table = grad_out.new_zeros(num_cells, grad_out.shape[1])
-    for weight, shift in zip(weights, shifts):
-        per_cell = F.embedding_bag(order, grad_out, offsets, per_sample_weights=weight[order], mode="sum")
-        if shift == 0:
-            grad_table += per_cell
-        else:
-            grad_table[shift:] += per_cell[: num_cells - shift]
-    return grad_table
-
-
-def _axis_lookup(coord: Tensor, size: int) -> tuple[Tensor, Tensor]:
-    """Top-left index [N] (long) and fractional offset [N] of ``align_corners=True`` sampling.
-
-    Border padding: coordinates are clamped to the grid, and (as in ``grid_sample``) a clamped
-    coordinate gets no gradient.
-    """
-    scaled = (coord + 1.0) * (0.5 * (size - 1))
-    inside = (scaled > 0) & (scaled < size - 1)
-    clamped = torch.where(inside, scaled, scaled.detach().clamp(0, size - 1))
-    index = clamped.detach().floor().clamp_(max=max(size - 2, 0))
-    return index.long(), clamped - index
 
 
 def sample_plane(plane: Tensor, u: Tensor, v: Tensor) -> Tensor:
@@ -122,19 +39,8 @@ def sample_plane(plane: Tensor, u: Tensor, v: Tensor) -> Tensor:
     Equals ``F.grid_sample(plane, grid, mode='bilinear', padding_mode='border',
     align_corners=True)`` with grid = stack(u, v) (u indexes W, v indexes H).
     """
-    _, _, height, width = plane.shape
-    ix, fx = _axis_lookup(u, width)
-    iy, fy = _axis_lookup(v, height)
-    return _sample_table(plane, iy * width + ix, fx, fy)
-
-
-def _sample_table(plane: Tensor, base: Tensor, fx: Tensor, fy: Tensor) -> Tensor:
-    """Bilinear samples [N, C] of a [1, C, H, W] plane at top-left cells ``base`` + offsets."""
-    _, channels, height, width = plane.shape
-    table = plane.reshape(channels, height * width).t().contiguous()
-    return _BilinearTableSample.apply(
-        table, base, fx, fy, 1 if width > 1 else 0, width if height > 1 else 0
-    )
+    layout = PlaneLayout.build([tuple(plane.shape[-2:])], [(0, 1)], 1)
+    return plane_product_lookup(planes_to_table([plane]), layout, torch.stack((u, v), 1))
 
 
 # --------------------------------------------------------------------------------------------
@@ -202,6 +108,12 @@ class HexPlaneField(nn.Module):
             level = _init_level(config)
             self.feat_dim += level[-1].shape[1]
             self.grids.append(level)
+        # Table layout of all planes: levels in order, the 6 planes of a level multiplied.
+        self.layout = PlaneLayout.build(
+            [tuple(p.shape[-2:]) for level in self.grids for p in level],
+            list(PLANE_AXES) * len(self.grids),
+            len(PLANE_AXES),
+        )
 
     @property
     def get_aabb(self) -> tuple[Tensor, Tensor]:
@@ -238,26 +150,10 @@ class HexPlaneField(nn.Module):
             )
         if not bool(torch.isfinite(pts).all()):
             raise ValueError("HexPlaneField: non-finite point coordinates (NaN or inf in the means)")
-        coords = torch.cat((self.normalize(pts), timestamps.to(pts.dtype)), 1).unbind(1)
-        # Axes are shared by 3 planes per level and time by every level: compute each lookup once.
-        lookups: dict[tuple[int, int], tuple[Tensor, Tensor]] = {}
-
-        def axis(i: int, size: int) -> tuple[Tensor, Tensor]:
-            if (i, size) not in lookups:
-                lookups[(i, size)] = _axis_lookup(coords[i], size)
-            return lookups[(i, size)]
-
-        features = []
-        for level in self.grids:
-            product = None
-            for (a, b), plane in zip(PLANE_AXES, level):
-                _, channels, height, width = plane.shape
-                ix, fx = axis(a, width)
-                iy, fy = axis(b, height)
-                sample = _sample_table(plane, iy * width + ix, fx, fy)
-                product = sample if product is None else product * sample
-            features.append(product)
-        return torch.cat(features, 1)
+        if pts.shape[0] == 0:
+            return pts.new_zeros(0, self.feat_dim)
+        planes = [plane for level in self.grids for plane in level]
+        return plane_product_lookup(planes_to_table(planes), self.layout, self.normalize(pts), timestamps)
 
     def compute_regulation(
         self, time_smoothness_weight: float, l1_time_planes_weight: float, plane_tv_weight: float
