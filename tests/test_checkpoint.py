@@ -50,8 +50,9 @@ def test_point_cloud_dir_round_trip(tmp_path):
     for name in ("_xyz", "_features_dc", "_features_rest", "_scaling", "_rotation", "_opacity",
                  "_deformation_table", "_deformation_accum"):
         assert torch.equal(getattr(loaded, name), getattr(model, name)), name
-    for (key, mine), (_, theirs) in zip(loaded.deformation.state_dict().items(), model.deformation.state_dict().items()):
-        assert torch.equal(mine, theirs), key
+    expected_state = model.deformation.state_dict()
+    for key, value in loaded.deformation.state_dict().items():
+        assert torch.equal(value, expected_state[key]), key
     assert torch.equal(loaded.registered_buffers["is_dynamic"], model.registered_buffers["is_dynamic"])
     assert torch.equal(loaded.registered_parameters["weights"], model.registered_parameters["weights"])
     assert loaded.registered_parameter_lrs["weights"] == 0.02
@@ -65,8 +66,9 @@ def test_ply_uses_4dgs_property_order_and_channel_major_sh():
         model._features_rest.copy_(torch.arange(27.0).reshape(3, 3, 3))  # [N, K-1=3, RGB]
     ply = gaussians_to_ply(model)
     names = [p.name for p in ply["vertex"].properties]
-    assert names == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(9)] + [
-        "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    assert names == (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+                     + [f"f_rest_{i}" for i in range(9)]
+                     + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
     # channel-major: f_rest_0..2 are R of coefficients 1..3, then G, then B.
     row = ply["vertex"][1]
     assert [row[f"f_rest_{i}"] for i in range(9)] == [9.0, 12.0, 15.0, 10.0, 13.0, 16.0, 11.0, 14.0, 17.0]

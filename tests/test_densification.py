@@ -43,7 +43,8 @@ def _tagged_model():
 
 def _row_tags(model):
     """name -> [N] tag read from each per-Gaussian tensor (first element of each row)."""
-    tags = {name: getattr(model, attr).detach().reshape(model.num_gaussians, -1)[:, 0] for name, attr in ROW_GROUPS.items()}
+    tags = {name: getattr(model, attr).detach().reshape(model.num_gaussians, -1)[:, 0]
+            for name, attr in ROW_GROUPS.items()}
     tags["scaling"] = -20.0 - model._scaling.detach()[:, 1]
     tags["extra"] = model.registered_parameters["extra"].detach()[:, 0]
     tags["tag"] = model.registered_buffers["tag"].float()
@@ -74,8 +75,7 @@ def test_prune_keeps_rows_and_adam_state_aligned():
         torch.testing.assert_close(tags, survivors, msg=name)
     assert torch.equal(model._deformation_table, table_before[~mask])
     assert model.max_radii2D.shape == (7,) and model.denom.shape == (7, 1) and model._deformation_accum.shape == (7, 3)
-    steps = {model.optimizer.state[g["params"][0]]["step"].item() for g in model.optimizer.param_groups if g["name"] == "xyz"}
-    assert steps == {1.0}
+    assert model.optimizer.state[model._xyz]["step"].item() == 1.0
 
 
 def test_clone_appends_copies_of_parents_with_fresh_moments():

@@ -96,6 +96,7 @@ def test_forward_matches_plain_4dgs_recipe(flags):
                 p.mul_(3.0)  # larger weights: deltas well away from zero
     ours = DeformNetwork(args)
     load_deformation_state(ours, plain.state_dict(), "plain")
+    PlainDeformNetwork(args).load_state_dict(ours.state_dict(), strict=True)  # and ours loads in 4DGS's
     ours.set_aabb([1.5, 2.0, 1.0], [-1.0, -2.5, -1.2])
     plain.deformation_net.grid.aabb.data.copy_(ours.deformation_net.grid.aabb)
 

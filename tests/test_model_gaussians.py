@@ -25,11 +25,13 @@ def test_create_from_pcd_follows_4dgs_init():
     np.fill_diagonal(squared, np.inf)
     dist2 = np.maximum(np.sort(squared, axis=1)[:, :3].mean(1), 1e-7)
     expected_log_scale = np.log(np.sqrt(dist2))
-    np.testing.assert_allclose(model._scaling.detach().numpy(), np.repeat(expected_log_scale[:, None], 3, 1), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(model._scaling.detach().numpy(), np.repeat(expected_log_scale[:, None], 3, 1),
+                               rtol=1e-5, atol=1e-6)
     assert model._scaling[3, 0].item() == pytest.approx(math.log(math.sqrt(1e-7)), rel=1e-5)
     assert torch.equal(model._rotation.detach(), torch.tensor([[1.0, 0, 0, 0]]).expand(30, 4))
     torch.testing.assert_close(model.get_opacity.detach(), torch.full((30, 1), 0.1))
-    torch.testing.assert_close(model._features_dc.detach()[:, 0], torch.tensor((colors - 0.5) / SH_C0, dtype=torch.float32))
+    expected_dc = torch.tensor((colors - 0.5) / SH_C0, dtype=torch.float32)
+    torch.testing.assert_close(model._features_dc.detach()[:, 0], expected_dc)
     assert model._features_rest.shape == (30, 8, 3) and not model._features_rest.detach().any()
     assert model._deformation_table.dtype == torch.bool and model._deformation_table.all()
     xyz_max, xyz_min = model.get_aabb

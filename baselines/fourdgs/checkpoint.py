@@ -182,7 +182,9 @@ def read_gaussian_ply(path: str | os.PathLike, sh_degree: int) -> dict[str, Tens
         wanted = [f"{prefix}_{i}" for i in range(len(found))]
         if found != wanted or (expected is not None and len(found) != expected):
             raise ValueError(f"{path}: expected properties {prefix}_0..{prefix}_{(expected or 1) - 1}, found {found}")
-        return np.stack([np.asarray(vertex[n], dtype=np.float32) for n in found], axis=1) if found else np.zeros((count, 0), np.float32)
+        if not found:
+            return np.zeros((count, 0), np.float32)
+        return np.stack([np.asarray(vertex[n], dtype=np.float32) for n in found], axis=1)
 
     for required in ("x", "y", "z", "opacity"):
         if required not in names:
@@ -191,7 +193,8 @@ def read_gaussian_ply(path: str | os.PathLike, sh_degree: int) -> dict[str, Tens
     num_rest = sum(1 for n in names if re.fullmatch(r"f_rest_\d+", n))
     if num_rest != 3 * rest:
         degree = (num_rest // 3 + 1) ** 0.5 - 1
-        degree_text = f"SH degree {int(degree)}" if degree == int(degree) and num_rest % 3 == 0 else "no valid SH degree"
+        valid = degree == int(degree) and num_rest % 3 == 0
+        degree_text = f"SH degree {int(degree)}" if valid else "no valid SH degree"
         raise ValueError(
             f"{path}: {num_rest} f_rest properties ({degree_text}), the model has SH degree {sh_degree} "
             f"({3 * rest} f_rest properties)"

@@ -83,7 +83,9 @@ class DeformationModule(Protocol):
     built from ``get_mlp_parameters()`` and ``get_grid_parameters()``.
     """
 
-    def __call__(self, state: GaussianState, times: Tensor, buffers: Mapping[str, Tensor] | None = None) -> GaussianState: ...
+    def __call__(
+        self, state: GaussianState, times: Tensor, buffers: Mapping[str, Tensor] | None = None
+    ) -> GaussianState: ...
 
     def get_mlp_parameters(self) -> list[nn.Parameter]: ...
 

@@ -97,7 +97,8 @@ def densification_step(
     count = model.num_gaussians
     if visible.shape != (count,) or radii.shape != (count,):
         raise ValueError(
-            f"densification_step: visible and radii must be [{count}], got {list(visible.shape)} and {list(radii.shape)}"
+            f"densification_step: visible and radii must be [{count}], "
+            f"got {list(visible.shape)} and {list(radii.shape)}"
         )
     model.update_max_radii(radii, visible)
     model.add_densification_stats(means2d_grad, visible, width, height)

@@ -31,7 +31,7 @@ from torch import Tensor, nn
 
 from baselines.fourdgs.deformation import DeformNetwork, check_deformation_state
 from baselines.fourdgs.lr_schedule import get_expon_lr_func
-from baselines.fourdgs.optimizer_state import find_group, load_state_by_group_name, swap_group_param
+from baselines.fourdgs.optimizer_state import load_state_by_group_name, swap_group_param
 from baselines.fourdgs.state import GaussianState
 
 SH_C0 = 0.28209479177387814
@@ -44,7 +44,6 @@ ROW_GROUPS: dict[str, str] = {
     "scaling": "_scaling",
     "rotation": "_rotation",
 }
-MODULE_GROUPS: tuple[str, ...] = ("deformation", "grid")
 GROUP_ORDER: tuple[str, ...] = ("xyz", "deformation", "grid", "f_dc", "f_rest", "opacity", "scaling", "rotation")
 STAGES: tuple[str, ...] = ("coarse", "fine")
 CAPTURE_LENGTH_4DGS = 14
@@ -495,7 +494,9 @@ class GaussianModel:
     def prune_points(self, mask: Tensor) -> None:
         """Remove the Gaussians where ``mask`` [N] (bool) is True."""
         if mask.dtype != torch.bool or mask.shape != (self.num_gaussians,):
-            raise ValueError(f"prune_points: mask must be bool [{self.num_gaussians}], got {mask.dtype} {list(mask.shape)}")
+            raise ValueError(
+                f"prune_points: mask must be bool [{self.num_gaussians}], got {mask.dtype} {list(mask.shape)}"
+            )
         self._keep_rows(~mask)
 
     def _rows_of(self, selection: Tensor, repeats: int = 1) -> dict[str, Tensor]:
@@ -587,9 +588,13 @@ class GaussianModel:
         """
         count = self.num_gaussians
         if means2d_grad.shape != (count, 2):
-            raise ValueError(f"add_densification_stats: means2d_grad must be [{count}, 2], got {list(means2d_grad.shape)}")
+            raise ValueError(
+                f"add_densification_stats: means2d_grad must be [{count}, 2], got {list(means2d_grad.shape)}"
+            )
         if visible.shape != (count,) or visible.dtype != torch.bool:
-            raise ValueError(f"add_densification_stats: visible must be bool [{count}], got {visible.dtype} {list(visible.shape)}")
+            raise ValueError(
+                f"add_densification_stats: visible must be bool [{count}], got {visible.dtype} {list(visible.shape)}"
+            )
         to_ndc = means2d_grad.new_tensor([0.5 * width, 0.5 * height])
         norms = torch.norm(means2d_grad.detach() * to_ndc, dim=-1, keepdim=True)
         self.xyz_gradient_accum[visible] += norms[visible]
@@ -642,12 +647,14 @@ class GaussianModel:
         Registered buffers/parameters and frozen groups become those of the snapshot (none for
         4DGS's). Everything is checked before the model is changed.
         """
-        if not isinstance(captured, (tuple, list)) or len(captured) not in (CAPTURE_LENGTH_4DGS, CAPTURE_LENGTH_4DGS + 1):
+        lengths = (CAPTURE_LENGTH_4DGS, CAPTURE_LENGTH_4DGS + 1)
+        if not isinstance(captured, (tuple, list)) or len(captured) not in lengths:
             raise ValueError(f"{source}: expected 4DGS's 14-element capture tuple (optionally + extras)")
         (active_sh_degree, xyz, deformation_state, table, f_dc, f_rest, scaling, rotation, opacity,
          max_radii, grad_accum, denom, optimizer_state, spatial_lr_scale) = captured[:CAPTURE_LENGTH_4DGS]
         extras = captured[CAPTURE_LENGTH_4DGS] if len(captured) > CAPTURE_LENGTH_4DGS else {}
-        rows = {"xyz": xyz, "f_dc": f_dc, "f_rest": f_rest, "opacity": opacity, "scaling": scaling, "rotation": rotation}
+        rows = {"xyz": xyz, "f_dc": f_dc, "f_rest": f_rest, "opacity": opacity, "scaling": scaling,
+                "rotation": rotation}
         self.check_rows(rows, source)
         count = xyz.shape[0]
         per_gaussian = {"max_radii2D": max_radii, "xyz_gradient_accum": grad_accum, "denom": denom,
@@ -661,7 +668,8 @@ class GaussianModel:
         if missing_lrs:
             raise ValueError(f"{source}: no learning rate stored for per-Gaussian parameters {missing_lrs}")
         check_deformation_state(self._deformation, deformation_state, source)
-        unknown_frozen = [n for n in extras.get("frozen", []) if n not in GROUP_ORDER and n not in extras.get("parameters", {})]
+        parameters = extras.get("parameters", {})
+        unknown_frozen = [n for n in extras.get("frozen", []) if n not in GROUP_ORDER and n not in parameters]
         if unknown_frozen:
             raise ValueError(f"{source}: frozen groups {unknown_frozen} do not exist")
 
@@ -672,7 +680,7 @@ class GaussianModel:
         self.set_gaussians(rows, table, extras.get("deformation_accum"), device, source)
         self.active_sh_degree = int(active_sh_degree)
         self.spatial_lr_scale = float(spatial_lr_scale)
-        self.set_extras(extras.get("buffers", {}), extras.get("parameters", {}), extras.get("parameter_lrs", {}), source)
+        self.set_extras(extras.get("buffers", {}), parameters, extras.get("parameter_lrs", {}), source)
         self.training_setup(opt)
         self.max_radii2D = max_radii.to(device, torch.float32)
         self.xyz_gradient_accum = grad_accum.to(device)

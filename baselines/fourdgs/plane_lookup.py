@@ -8,9 +8,9 @@ align_corners=True)``, gradients included (a clamped coordinate gets none). Cons
 Why not ``grid_sample``: on CPU its backward is a per-channel scatter, single-threaded for one
 batch item, and it dominates a 4DGS training step. Here the planes form one channels-last table
 [sum(H*W), C]; a sample is a 4-row weighted ``embedding_bag`` (a fused, vectorised kernel). The
-table gradient puts each plane's sample gradients in cell order once and sums them per cell with
-``embedding_bag`` again (sequential reads); the coordinate gradient uses ``embedding_bag`` with
-the derivative weights. The work runs plane by plane on [N, C] tensors: one [P, N, C] tensor
+table gradient orders each plane's points by cell once and sums their sample gradients per cell
+with ``embedding_bag`` again; the coordinate gradient uses ``embedding_bag`` with the derivative
+weights. The work runs plane by plane on [N, C] tensors: one [P, N, C] tensor
 would exceed the allocator's reuse threshold at 100k points and page-fault on every call.
 """
 
@@ -220,22 +220,19 @@ def _product_grads(grad_product: Tensor, samples: Sequence[Tensor]) -> list[Tens
 def _add_table_grad(grad_table: Tensor, grad_sample: Tensor, cells: _PlaneCells, plane: int) -> None:
     """grad_table[corner_c(n)] += weight_c(n) * grad_sample[n], summed over points n and corners c.
 
-    The points are sorted by top-left cell once; every corner is then a bag-per-cell
-    ``embedding_bag`` over the sorted gradients (sequential reads), added at the corner's offset.
+    Points are ordered by top-left cell once; every corner is then one bag-per-cell
+    ``embedding_bag`` over the sample gradients in that order, added at the corner's row offset.
     """
     layout = cells.layout
     start, cell_count = layout.offset[plane], layout.width[plane] * layout.height[plane]
     base = cells.base(plane) - start
     order = torch.argsort(base)
-    sorted_grads = grad_sample.index_select(0, order)
-    sorted_weights = cells.weights(plane).index_select(0, order).t().contiguous()
     counts = torch.bincount(base, minlength=cell_count)
     offsets = torch.cumsum(counts, 0) - counts
-    positions = torch.arange(order.numel(), device=order.device)
+    sorted_weights = cells.weights(plane).index_select(0, order).t().contiguous()
     region = grad_table[start : start + cell_count]
     for corner, shift in enumerate(layout.shifts[plane]):
-        per_cell = F.embedding_bag(positions, sorted_grads, offsets, per_sample_weights=sorted_weights[corner],
-                                   mode="sum")
+        per_cell = F.embedding_bag(order, grad_sample, offsets, per_sample_weights=sorted_weights[corner], mode="sum")
         region[shift:] += per_cell[: cell_count - shift]
 
 
