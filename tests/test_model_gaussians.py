@@ -1,5 +1,6 @@
 """GaussianModel: 4DGS initialisation, optimizer groups, schedules, deform, freeze, snapshots."""
 
+import copy
 import math
 
 import numpy as np
@@ -236,3 +237,20 @@ def test_restore_accepts_4dgs_capture_tuple():
             assert torch.equal(saved["state"][index][key], restored_state["state"][index][key])
     with pytest.raises(ValueError, match="_features_rest"):
         GaussianModel(1, hidden_args()).restore(four_dgs_capture, opt_args())
+
+
+def test_restore_rejects_foreign_optimizer_state_before_changing_the_model():
+    """Checked before anything is installed: the target keeps its Gaussians."""
+    model = make_model()
+    _train_step(model, 0)
+    captured = list(model.capture())
+    renamed = copy.deepcopy(captured[12])
+    renamed["param_groups"][0]["name"] = "positions"
+    target = make_model(count=7, seed=2)
+    with pytest.raises(ValueError, match=r"chk\.pth: optimizer groups \['positions'\]"):
+        target.restore(tuple(captured[:12] + [renamed] + captured[13:]), opt_args(), source="chk.pth")
+    wrong_shape = copy.deepcopy(captured[12])
+    wrong_shape["state"][0]["exp_avg"] = torch.zeros(3, 3)
+    with pytest.raises(ValueError, match="exp_avg.*group 'xyz'"):
+        target.restore(tuple(captured[:12] + [wrong_shape] + captured[13:]), opt_args(), source="chk.pth")
+    assert target.num_gaussians == 7 and target.optimizer is not None

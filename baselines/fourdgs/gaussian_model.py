@@ -31,7 +31,7 @@ from torch import Tensor, nn
 
 from baselines.fourdgs.deformation import DeformNetwork, check_deformation_state
 from baselines.fourdgs.lr_schedule import get_expon_lr_func
-from baselines.fourdgs.optimizer_state import load_state_by_group_name, swap_group_param
+from baselines.fourdgs.optimizer_state import check_state_by_group_name, load_state_by_group_name, swap_group_param
 from baselines.fourdgs.state import GaussianState
 
 SH_C0 = 0.28209479177387814
@@ -672,6 +672,11 @@ class GaussianModel:
         unknown_frozen = [n for n in extras.get("frozen", []) if n not in GROUP_ORDER and n not in parameters]
         if unknown_frozen:
             raise ValueError(f"{source}: frozen groups {unknown_frozen} do not exist")
+        expected_groups = {name: [rows[name].shape] for name in ROW_GROUPS}
+        expected_groups["deformation"] = [p.shape for p in self._deformation.get_mlp_parameters()]
+        expected_groups["grid"] = [p.shape for p in self._deformation.get_grid_parameters()]
+        expected_groups.update({name: [value.shape] for name, value in parameters.items()})
+        check_state_by_group_name(optimizer_state, expected_groups, source)
 
         device = xyz.device
         self.unfreeze(list(self._frozen))

@@ -9,7 +9,7 @@ as 4DGS does. Loading a saved optimizer state matches groups by name, so a 4DGS 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import torch
@@ -50,13 +50,7 @@ def swap_group_param(
     optimizer.state[new_param] = state
 
 
-def load_state_by_group_name(optimizer: torch.optim.Optimizer, saved: Mapping[str, Any], source: str) -> None:
-    """Load an optimizer ``state_dict`` matching parameter groups by their "name".
-
-    Groups of ``optimizer`` absent from ``saved`` keep their current settings and start with
-    empty state; saved groups absent from ``optimizer`` are an error, as are groups whose
-    parameter counts or state shapes differ. ``source`` names the origin in error messages.
-    """
+def _groups_by_name(saved: Mapping[str, Any], source: str) -> tuple[dict[str, dict], dict]:
     try:
         saved_groups = list(saved["param_groups"])
         saved_state = dict(saved["state"])
@@ -64,37 +58,56 @@ def load_state_by_group_name(optimizer: torch.optim.Optimizer, saved: Mapping[st
         raise ValueError(f"{source}: optimizer state is not an optimizer state_dict ({err})") from None
     by_name = {}
     for group in saved_groups:
-        if "name" not in group:
+        if not isinstance(group, Mapping) or "name" not in group:
             raise ValueError(f"{source}: optimizer parameter group without a 'name'")
         by_name[group["name"]] = group
-    current = {g.get("name"): g for g in optimizer.param_groups}
-    unknown = [n for n in by_name if n not in current]
-    if unknown:
-        raise ValueError(f"{source}: optimizer groups {unknown} do not exist in this model (groups: {list(current)})")
+    return by_name, saved_state
 
+
+def check_state_by_group_name(
+    saved: Mapping[str, Any], expected: Mapping[str, Sequence[torch.Size]], source: str
+) -> None:
+    """Raise ``ValueError`` unless a saved optimizer ``state_dict`` fits groups ``expected``
+    (name -> parameter shapes): known group names, parameter counts and per-row state shapes."""
+    by_name, saved_state = _groups_by_name(saved, source)
+    unknown = [n for n in by_name if n not in expected]
+    if unknown:
+        raise ValueError(f"{source}: optimizer groups {unknown} do not exist in this model (groups: {list(expected)})")
+    for name, group in by_name.items():
+        shapes = expected[name]
+        if len(group["params"]) != len(shapes):
+            raise ValueError(
+                f"{source}: optimizer group {name!r} has {len(group['params'])} parameters, the model has {len(shapes)}"
+            )
+        for param_id, shape in zip(group["params"], shapes):
+            for key, value in saved_state.get(param_id, {}).items():
+                if isinstance(value, Tensor) and value.dim() > 0 and value.shape != shape:
+                    raise ValueError(
+                        f"{source}: optimizer state {key!r} of group {name!r} has shape {list(value.shape)}, "
+                        f"the parameter has {list(shape)}"
+                    )
+
+
+def load_state_by_group_name(optimizer: torch.optim.Optimizer, saved: Mapping[str, Any], source: str) -> None:
+    """Load an optimizer ``state_dict`` matching parameter groups by their "name".
+
+    Groups of ``optimizer`` absent from ``saved`` keep their current settings and start with
+    empty state; saved groups absent from ``optimizer`` are an error, as are groups whose
+    parameter counts or state shapes differ. ``source`` names the origin in error messages.
+    """
+    expected = {g.get("name"): [p.shape for p in g["params"]] for g in optimizer.param_groups}
+    check_state_by_group_name(saved, expected, source)
+    by_name, saved_state = _groups_by_name(saved, source)
     merged_groups, merged_state, next_id = [], {}, 0
     for group in optimizer.param_groups:
         name = group.get("name")
-        params = group["params"]
-        ids = list(range(next_id, next_id + len(params)))
-        next_id += len(params)
+        ids = list(range(next_id, next_id + len(group["params"])))
+        next_id += len(ids)
         if name in by_name:
             old = by_name[name]
-            if len(old["params"]) != len(params):
-                raise ValueError(
-                    f"{source}: optimizer group {name!r} has {len(old['params'])} parameters, "
-                    f"the model has {len(params)}"
-                )
-            for new_id, old_id, param in zip(ids, old["params"], params):
+            for new_id, old_id in zip(ids, old["params"]):
                 if old_id in saved_state:
-                    entry = saved_state[old_id]
-                    for key, value in entry.items():
-                        if isinstance(value, Tensor) and value.dim() > 0 and value.shape != param.shape:
-                            raise ValueError(
-                                f"{source}: optimizer state {key!r} of group {name!r} has shape "
-                                f"{list(value.shape)}, the parameter has {list(param.shape)}"
-                            )
-                    merged_state[new_id] = entry
+                    merged_state[new_id] = saved_state[old_id]
             settings = {k: v for k, v in old.items() if k != "params"}
         else:
             settings = {k: v for k, v in group.items() if k != "params"}
