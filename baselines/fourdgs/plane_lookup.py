@@ -181,18 +181,7 @@ class _PlaneProductLookup(torch.autograd.Function):
                 if need_table:
                     _add_table_grad(grad_table, grad_sample, cells, plane)
                 if grad_coords is not None:
-                    corners = cells.corners(plane)
-                    for axis_cells, other, axis, size, is_u in (
-                        (cells.u[plane], cells.v[plane], layout.u_axis[plane], layout.width[plane], True),
-                        (cells.v[plane], cells.u[plane], layout.v_axis[plane], layout.height[plane], False),
-                    ):
-                        if not wants(axis):
-                            continue
-                        g, f = 1.0 - other.frac, other.frac
-                        d_weights = torch.stack((-g, g, -f, f) if is_u else (-g, -f, g, f), 1)
-                        derivative = F.embedding_bag(corners, table, per_sample_weights=d_weights, mode="sum")
-                        grad_frac = torch.linalg.vecdot(derivative, grad_sample)
-                        grad_coords[axis] += grad_frac * (0.5 * (size - 1)) * axis_cells.inside
+                    _add_coordinate_grads(grad_coords, grad_sample, table, cells, plane, wants)
 
         grad_space = grad_coords[:num_space].t() if need_space else None
         grad_time = grad_coords[num_space:].t() if need_time else None
@@ -215,6 +204,29 @@ def _product_grads(grad_product: Tensor, samples: Sequence[Tensor]) -> list[Tens
         if k < count - 1:
             prefix = prefix * samples[k]
     return grads
+
+
+def _add_coordinate_grads(
+    grad_coords: Tensor, grad_sample: Tensor, table: Tensor, cells: _PlaneCells, plane: int, wants
+) -> None:
+    """grad_coords[axis] += d(sample) / d(coordinate) . grad_sample for the plane's two axes.
+
+    d sample / d fu is the sample taken with the weights' derivative (-gv, gv, -fv, fv) (and
+    (-gu, -fu, gu, fu) for fv); the chain rule adds (size - 1) / 2, and 0 where clamped.
+    """
+    layout = cells.layout
+    corners = cells.corners(plane)
+    for own, other, axis, size, along_u in (
+        (cells.u[plane], cells.v[plane], layout.u_axis[plane], layout.width[plane], True),
+        (cells.v[plane], cells.u[plane], layout.v_axis[plane], layout.height[plane], False),
+    ):
+        if not wants(axis):
+            continue
+        g, f = 1.0 - other.frac, other.frac
+        d_weights = torch.stack((-g, g, -f, f) if along_u else (-g, -f, g, f), 1)
+        derivative = F.embedding_bag(corners, table, per_sample_weights=d_weights, mode="sum")
+        grad_frac = torch.linalg.vecdot(derivative, grad_sample)
+        grad_coords[axis] += grad_frac * (0.5 * (size - 1)) * own.inside
 
 
 def _add_table_grad(grad_table: Tensor, grad_sample: Tensor, cells: _PlaneCells, plane: int) -> None:
