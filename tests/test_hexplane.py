@@ -121,6 +121,8 @@ def test_set_aabb_uses_4dgs_orientation_and_rejects_bad_boxes():
         field.set_aabb([float("nan"), 1.0, 1.0], [0.0, 0.0, 0.0])
     with pytest.raises(ValueError, match="non-finite point"):
         field(torch.tensor([[float("nan"), 0.0, 0.0]]), torch.zeros(1, 1))
+    with pytest.raises(ValueError, match="non-finite timestamps"):
+        field(torch.zeros(1, 3), torch.tensor([[float("inf")]]))
 
 
 def test_config_errors_name_the_key():

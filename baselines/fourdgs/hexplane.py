@@ -150,6 +150,8 @@ class HexPlaneField(nn.Module):
             )
         if not bool(torch.isfinite(pts).all()):
             raise ValueError("HexPlaneField: non-finite point coordinates (NaN or inf in the means)")
+        if not bool(torch.isfinite(timestamps).all()):
+            raise ValueError("HexPlaneField: non-finite timestamps")
         if pts.shape[0] == 0:
             return pts.new_zeros(0, self.feat_dim)
         planes = [plane for level in self.grids for plane in level]
