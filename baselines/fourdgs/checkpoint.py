@@ -1,0 +1,358 @@
+"""4DGS-layout checkpoints, written atomically.
+
+Layout (4DGS's, so either code base reads the other's output)::
+
+    <model_path>/point_cloud/iteration_N/         fine stage (coarse_iteration_N for coarse)
+        point_cloud.ply          3DGS/4DGS Gaussian PLY (pre-activation values)
+        deformation.pth          deformation module state_dict (4DGS key names)
+        deformation_table.pth    [N] bool
+        deformation_accum.pth    [N, 3] float
+        extra_buffers.pth        ours: registered per-Gaussian buffers/parameters (optional on load)
+    <model_path>/chkpnt_<stage>_<N>.pth            full training state (capture() + iteration)
+
+Every file is written to a temporary file in the same folder, flushed, fsync'ed and renamed
+over the target, so a killed run leaves either the old file or the new one, never a torn one.
+Loading checks everything (shapes, SH degree, state-dict keys) before changing the model and
+raises ``ValueError`` naming the file.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+import torch
+from plyfile import PlyData, PlyElement
+from torch import Tensor
+
+from baselines.fourdgs.deformation import check_deformation_state
+from baselines.fourdgs.gaussian_model import GaussianModel
+
+PLY_FILE = "point_cloud.ply"
+DEFORMATION_FILE = "deformation.pth"
+TABLE_FILE = "deformation_table.pth"
+ACCUM_FILE = "deformation_accum.pth"
+EXTRA_FILE = "extra_buffers.pth"
+EXTRA_FORMAT = "reflow-4dgs/extra-buffers"
+TRAINING_STATE_FORMAT = "reflow-4dgs/training-state"
+FORMAT_VERSION = 1
+
+
+# --------------------------------------------------------------------------------------------
+# Atomic writers.
+def _atomic_write(path: str | os.PathLike, write: Callable[[IO[bytes]], None]) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle = tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp", delete=False)
+    try:
+        with handle:
+            write(handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(handle.name, path)
+    except BaseException:
+        try:
+            os.unlink(handle.name)
+        except FileNotFoundError:
+            pass
+        raise
+    _fsync_directory(path.parent)
+    return path
+
+
+def _fsync_directory(directory: Path) -> None:
+    # Makes the rename itself durable; not every platform/filesystem allows opening a folder.
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def atomic_save(obj: Any, path: str | os.PathLike) -> Path:
+    """``torch.save(obj, path)`` through a temporary file + fsync + rename."""
+    return _atomic_write(path, lambda f: torch.save(obj, f))
+
+
+def atomic_write_ply(ply: PlyData, path: str | os.PathLike) -> Path:
+    """Write a ``PlyData`` through a temporary file + fsync + rename."""
+    return _atomic_write(path, ply.write)
+
+
+def _torch_load(path: Path, map_location: Any, trusted: bool = False) -> Any:
+    if not path.is_file():
+        raise ValueError(f"{path}: file not found")
+    try:
+        return torch.load(path, map_location=map_location, weights_only=not trusted)
+    except Exception as err:  # torch raises many types for corrupt/foreign files
+        raise ValueError(f"{path}: cannot be read as a torch file ({type(err).__name__}: {err})") from None
+
+
+# --------------------------------------------------------------------------------------------
+# Paths.
+def point_cloud_dir(model_path: str | os.PathLike, iteration: int, stage: str = "fine") -> Path:
+    """``<model_path>/point_cloud/iteration_N`` (fine) or ``coarse_iteration_N`` (coarse)."""
+    if stage not in ("coarse", "fine"):
+        raise ValueError(f"stage must be 'coarse' or 'fine', got {stage!r}")
+    prefix = "coarse_iteration" if stage == "coarse" else "iteration"
+    return Path(model_path) / "point_cloud" / f"{prefix}_{int(iteration)}"
+
+
+def training_state_path(model_path: str | os.PathLike, stage: str, iteration: int) -> Path:
+    """``<model_path>/chkpnt_<stage>_<N>.pth`` (4DGS's name)."""
+    return Path(model_path) / f"chkpnt_{stage}_{int(iteration)}.pth"
+
+
+def find_latest_iteration(model_path: str | os.PathLike, stage: str = "fine") -> int | None:
+    """Largest N with a ``point_cloud/(coarse_)iteration_N`` folder, or None."""
+    root = Path(model_path) / "point_cloud"
+    pattern = re.compile(r"coarse_iteration_(\d+)" if stage == "coarse" else r"iteration_(\d+)")
+    if not root.is_dir():
+        return None
+    found = [int(m.group(1)) for p in root.iterdir() if p.is_dir() and (m := pattern.fullmatch(p.name))]
+    return max(found) if found else None
+
+
+# --------------------------------------------------------------------------------------------
+# Gaussian PLY (3DGS/4DGS format).
+def ply_attribute_names(num_rest_coefficients: int) -> list[str]:
+    """x y z nx ny nz f_dc_0..2 f_rest_0.. opacity scale_0..2 rot_0..3 (4DGS's order)."""
+    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+    names += [f"f_rest_{i}" for i in range(3 * num_rest_coefficients)]
+    names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    return names
+
+
+def gaussians_to_ply(model: GaussianModel) -> PlyData:
+    """The model's Gaussians as a binary little-endian 3DGS PLY.
+
+    SH features are written channel-major (all R coefficients, then G, then B), i.e. the
+    transposed [N, 3, K] layout flattened, as 3DGS/4DGS do.
+    """
+    count = model.num_gaussians
+
+    def flat(t: Tensor) -> np.ndarray:
+        return t.detach().float().cpu().reshape(count, -1).numpy()
+
+    columns = [
+        flat(model._xyz),
+        np.zeros((count, 3), dtype=np.float32),
+        flat(model._features_dc.transpose(1, 2)),
+        flat(model._features_rest.transpose(1, 2)),
+        flat(model._opacity),
+        flat(model._scaling),
+        flat(model._rotation),
+    ]
+    values = np.ascontiguousarray(np.concatenate(columns, axis=1), dtype="<f4")
+    names = ply_attribute_names(model._features_rest.shape[1])
+    records = values.view(np.dtype([(n, "<f4") for n in names])).reshape(count)
+    return PlyData([PlyElement.describe(records, "vertex")], byte_order="<")
+
+
+def read_gaussian_ply(path: str | os.PathLike, sh_degree: int) -> dict[str, Tensor]:
+    """Per-Gaussian float32 tensors (keys xyz, f_dc, f_rest, opacity, scaling, rotation) of a PLY.
+
+    Raises ``ValueError`` naming the file if it is unreadable, lacks properties, holds another
+    SH degree than ``sh_degree`` or contains NaN/inf.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: file not found")
+    try:
+        ply = PlyData.read(str(path))
+        vertex = ply["vertex"]
+        names = [p.name for p in vertex.properties]
+    except Exception as err:
+        raise ValueError(f"{path}: not a readable Gaussian PLY ({type(err).__name__}: {err})") from None
+    count = vertex.count
+
+    def columns(prefix: str, expected: int | None = None) -> np.ndarray:
+        found = sorted((n for n in names if re.fullmatch(rf"{prefix}_\d+", n)), key=lambda n: int(n.rsplit("_", 1)[1]))
+        wanted = [f"{prefix}_{i}" for i in range(len(found))]
+        if found != wanted or (expected is not None and len(found) != expected):
+            raise ValueError(f"{path}: expected properties {prefix}_0..{prefix}_{(expected or 1) - 1}, found {found}")
+        if not found:
+            return np.zeros((count, 0), np.float32)
+        return np.stack([np.asarray(vertex[n], dtype=np.float32) for n in found], axis=1)
+
+    for required in ("x", "y", "z", "opacity"):
+        if required not in names:
+            raise ValueError(f"{path}: missing property {required!r}")
+    rest = (sh_degree + 1) ** 2 - 1
+    num_rest = sum(1 for n in names if re.fullmatch(r"f_rest_\d+", n))
+    if num_rest != 3 * rest:
+        degree = (num_rest // 3 + 1) ** 0.5 - 1
+        valid = degree == int(degree) and num_rest % 3 == 0
+        degree_text = f"SH degree {int(degree)}" if valid else "no valid SH degree"
+        raise ValueError(
+            f"{path}: {num_rest} f_rest properties ({degree_text}), the model has SH degree {sh_degree} "
+            f"({3 * rest} f_rest properties)"
+        )
+    xyz = np.stack([np.asarray(vertex[a], dtype=np.float32) for a in "xyz"], axis=1)
+    f_dc = columns("f_dc", 3)
+    f_rest = columns("f_rest", 3 * rest).reshape(count, 3, rest).transpose(0, 2, 1)
+    arrays = {
+        "xyz": xyz,
+        "f_dc": f_dc.reshape(count, 1, 3),
+        "f_rest": np.ascontiguousarray(f_rest),
+        "opacity": np.asarray(vertex["opacity"], dtype=np.float32)[:, None],
+        "scaling": columns("scale", 3),
+        "rotation": columns("rot", 4),
+    }
+    for name, array in arrays.items():
+        if not np.isfinite(array).all():
+            raise ValueError(f"{path}: {name} values contain NaN or inf")
+    return {name: torch.from_numpy(np.ascontiguousarray(array)) for name, array in arrays.items()}
+
+
+# --------------------------------------------------------------------------------------------
+# point_cloud/iteration_N folders.
+def save_point_cloud_dir(model: GaussianModel, directory: str | os.PathLike) -> Path:
+    """Write the 4DGS files plus ``extra_buffers.pth`` into ``directory`` (created if needed)."""
+    directory = Path(directory)
+    state = model._deformation.state_dict()
+    for key in state:
+        state[key] = state[key].detach().cpu()
+    atomic_write_ply(gaussians_to_ply(model), directory / PLY_FILE)
+    atomic_save(state, directory / DEFORMATION_FILE)
+    atomic_save(model._deformation_table.detach().cpu(), directory / TABLE_FILE)
+    atomic_save(model._deformation_accum.detach().cpu(), directory / ACCUM_FILE)
+    extras = {
+        "format": EXTRA_FORMAT,
+        "version": FORMAT_VERSION,
+        "buffers": {n: v.detach().cpu() for n, v in model.registered_buffers.items()},
+        "parameters": {n: v.detach().cpu() for n, v in model.registered_parameters.items()},
+        "parameter_lrs": dict(model.registered_parameter_lrs),
+    }
+    atomic_save(extras, directory / EXTRA_FILE)
+    return directory
+
+
+def _module_device(module: torch.nn.Module) -> torch.device:
+    for tensor in module.parameters():
+        return tensor.device
+    return torch.device("cpu")
+
+
+def load_point_cloud_dir(
+    directory: str | os.PathLike, model: GaussianModel, device: torch.device | str | None = None
+) -> None:
+    """Load a 4DGS ``point_cloud/iteration_N`` folder (ours or 4DGS's) into ``model``.
+
+    As 4DGS's ``load_ply`` + ``load_model``: the active SH degree becomes the maximum, a missing
+    deformation table means "all deformed", a missing accumulator zeros, statistics restart at
+    zero. Registered per-Gaussian buffers/parameters become those of ``extra_buffers.pth`` (none
+    if the file is absent). The optimizer is dropped: call ``training_setup`` afterwards, and set
+    ``spatial_lr_scale`` first if the model was not created from a point cloud.
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise ValueError(f"{directory}: checkpoint folder not found")
+    device = torch.device(device) if device is not None else _module_device(model._deformation)
+    rows = read_gaussian_ply(directory / PLY_FILE, model.max_sh_degree)
+    count = rows["xyz"].shape[0]
+    deformation_state = _torch_load(directory / DEFORMATION_FILE, "cpu")
+    check_deformation_state(model._deformation, deformation_state, str(directory / DEFORMATION_FILE))
+
+    table = None
+    if (directory / TABLE_FILE).exists():
+        table = _load_rows(directory / TABLE_FILE, count, (count,))
+    accum = None
+    if (directory / ACCUM_FILE).exists():
+        accum = _load_rows(directory / ACCUM_FILE, count, (count, 3))
+    extras: Mapping[str, Any] = {"buffers": {}, "parameters": {}, "parameter_lrs": {}}
+    if (directory / EXTRA_FILE).exists():
+        extras = _load_extras(directory / EXTRA_FILE, count)
+
+    model.unfreeze(model.frozen_groups)
+    model._deformation = model._deformation.to(device)
+    model._deformation.load_state_dict(deformation_state, strict=True)
+    model.set_gaussians(rows, table, accum, device, str(directory / PLY_FILE))
+    model.active_sh_degree = model.max_sh_degree
+    model.set_extras(extras["buffers"], extras["parameters"], extras["parameter_lrs"], str(directory / EXTRA_FILE))
+
+
+def _load_rows(path: Path, count: int, shape: tuple[int, ...]) -> Tensor:
+    value = _torch_load(path, "cpu")
+    if not isinstance(value, Tensor) or tuple(value.shape) != shape:
+        got = list(value.shape) if isinstance(value, Tensor) else type(value).__name__
+        raise ValueError(f"{path}: expected a tensor of shape {list(shape)} ({count} Gaussians in the PLY), got {got}")
+    return value
+
+
+def _load_extras(path: Path, count: int) -> Mapping[str, Any]:
+    extras = _torch_load(path, "cpu")
+    if not isinstance(extras, Mapping) or extras.get("format") != EXTRA_FORMAT:
+        raise ValueError(f"{path}: not an extra-buffers file of this project")
+    for kind in ("buffers", "parameters"):
+        for name, value in extras.get(kind, {}).items():
+            if not isinstance(value, Tensor) or value.dim() == 0 or value.shape[0] != count:
+                got = list(value.shape) if isinstance(value, Tensor) else type(value).__name__
+                raise ValueError(f"{path}: {kind[:-1]} {name!r} has shape {got}, expected {count} rows")
+    return {"buffers": extras.get("buffers", {}), "parameters": extras.get("parameters", {}),
+            "parameter_lrs": extras.get("parameter_lrs", {})}
+
+
+# --------------------------------------------------------------------------------------------
+# Full training state (chkpnt_<stage>_<N>.pth).
+@dataclass
+class TrainingState:
+    """A loaded ``chkpnt`` file: pass ``capture`` to ``GaussianModel.restore``."""
+
+    capture: tuple
+    iteration: int
+    stage: str | None
+    extra: dict[str, Any] = field(default_factory=dict)
+    is_4dgs_format: bool = False
+
+
+def save_training_state(
+    path: str | os.PathLike, model: GaussianModel, iteration: int, stage: str, extra: Mapping[str, Any] | None = None
+) -> Path:
+    """Atomically write ``capture()`` (optimizer included), iteration, stage and ``extra``.
+
+    ``extra`` (e.g. trainer or plugin state) may hold tensors and plain Python values.
+    """
+    payload = {
+        "format": TRAINING_STATE_FORMAT,
+        "version": FORMAT_VERSION,
+        "capture": model.capture(),
+        "iteration": int(iteration),
+        "stage": stage,
+        "extra": dict(extra or {}),
+    }
+    return atomic_save(payload, path)
+
+
+def load_training_state(
+    path: str | os.PathLike, map_location: Any = "cpu", trusted: bool = False
+) -> TrainingState:
+    """Read a training state written by ``save_training_state`` or by 4DGS's train.py.
+
+    4DGS stores ``(capture_tuple, iteration)``; its stage is taken from the file name
+    (``chkpnt_<stage>_<N>.pth``) when it follows 4DGS's pattern. ``trusted=True`` allows
+    arbitrary pickled objects (only for files you wrote yourself).
+    """
+    path = Path(path)
+    payload = _torch_load(path, map_location, trusted)
+    if isinstance(payload, Mapping) and payload.get("format") == TRAINING_STATE_FORMAT:
+        capture = payload.get("capture")
+        if not isinstance(capture, (tuple, list)):
+            raise ValueError(f"{path}: training state without a capture tuple")
+        return TrainingState(tuple(capture), int(payload["iteration"]), payload.get("stage"),
+                             dict(payload.get("extra", {})))
+    if isinstance(payload, (tuple, list)) and len(payload) == 2 and isinstance(payload[0], (tuple, list)):
+        match = re.fullmatch(r"chkpnt_(coarse|fine)_(\d+)\.pth", path.name)
+        return TrainingState(tuple(payload[0]), int(payload[1]), match.group(1) if match else None, {}, True)
+    raise ValueError(f"{path}: neither this project's training state nor 4DGS's (capture, iteration) tuple")

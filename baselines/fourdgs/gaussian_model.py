@@ -1,0 +1,736 @@
+"""The 4DGS Gaussian model (scene/gaussian_model.py): parameters, optimizer, densification.
+
+Field names, optimizer group names, initialisation, learning-rate schedules, clone/split/prune,
+opacity reset and ``capture()`` order are 4DGS's. Additions for plugins:
+
+- ``deform(time, stage)`` returns a ``GaussianState`` (coarse: canonical; fine: through the
+  deformation module, which a plugin may replace, with the registered per-Gaussian buffers).
+- ``register_gaussian_buffer`` / ``register_gaussian_parameter``: per-Gaussian tensors that
+  clone/split/prune keep in step (new rows copy their parent's values); parameters get their own
+  optimizer group (named after them) handled like the built-in ones.
+- ``freeze`` / ``unfreeze`` optimizer groups by name: frozen parameters get no gradient, hence
+  no Adam update at all (not even from momentum).
+
+Device: everything follows the point cloud given to ``create_from_pcd`` (or the restored
+tensors); nothing is hard-coded.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Iterable, Mapping
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from scipy.spatial import cKDTree
+from torch import Tensor, nn
+
+from baselines.fourdgs.deformation import DeformNetwork, check_deformation_state
+from baselines.fourdgs.lr_schedule import get_expon_lr_func
+from baselines.fourdgs.optimizer_state import check_state_by_group_name, load_state_by_group_name, swap_group_param
+from baselines.fourdgs.state import GaussianState
+
+SH_C0 = 0.28209479177387814
+# Per-Gaussian optimizer groups -> attribute, in 4DGS's group order around the module groups.
+ROW_GROUPS: dict[str, str] = {
+    "xyz": "_xyz",
+    "f_dc": "_features_dc",
+    "f_rest": "_features_rest",
+    "opacity": "_opacity",
+    "scaling": "_scaling",
+    "rotation": "_rotation",
+}
+GROUP_ORDER: tuple[str, ...] = ("xyz", "deformation", "grid", "f_dc", "f_rest", "opacity", "scaling", "rotation")
+STAGES: tuple[str, ...] = ("coarse", "fine")
+CAPTURE_LENGTH_4DGS = 14
+
+
+def inverse_sigmoid(x: Tensor) -> Tensor:
+    return torch.log(x / (1 - x))
+
+
+def rgb_to_sh(rgb: Tensor) -> Tensor:
+    """DC SH coefficient whose rendered colour (SH * C0 + 0.5) is ``rgb``."""
+    return (rgb - 0.5) / SH_C0
+
+
+def quaternion_to_matrix(rotations: Tensor) -> Tensor:
+    """[N, 3, 3] rotation matrices of [N, 4] (w, x, y, z) quaternions (normalised first)."""
+    w, x, y, z = F.normalize(rotations, dim=-1).unbind(-1)
+    return torch.stack(
+        (
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ),
+        -1,
+    ).reshape(-1, 3, 3)
+
+
+def mean_squared_knn_distance(points: np.ndarray, k: int = 3) -> np.ndarray:
+    """[P] mean squared distance of each point to its ``k`` nearest others (simple-knn's distCUDA2)."""
+    count = points.shape[0]
+    if count < 2:
+        raise ValueError(f"need at least 2 points to estimate initial scales, got {count}")
+    neighbours = min(k, count - 1)
+    distances, _ = cKDTree(points).query(points, k=neighbours + 1)
+    return (distances[:, 1:] ** 2).mean(axis=1)
+
+
+def _repeat_rows(tensor: Tensor, times: int) -> Tensor:
+    """``tensor`` tiled ``times`` along dim 0 (4DGS's ``.repeat(N, 1, ...)``)."""
+    return tensor.repeat(times, *([1] * (tensor.dim() - 1)))
+
+
+def _opt_value(opt: Any, name: str) -> Any:
+    try:
+        return getattr(opt, name)
+    except AttributeError:
+        raise ValueError(f"optimization arguments lack {name!r} (4DGS OptimizationParams)") from None
+
+
+class GaussianModel:
+    """4DGS Gaussians plus their deformation module and optimizer.
+
+    Args:
+        sh_degree: maximum SH degree (4DGS default 3).
+        hidden_args: 4DGS ModelHiddenParams-like object for the default deformation network.
+        deformation: a module satisfying ``deformation.DeformationModule`` to use instead.
+    """
+
+    def __init__(self, sh_degree: int, hidden_args: Any = None, deformation: nn.Module | None = None) -> None:
+        if sh_degree < 0:
+            raise ValueError(f"sh_degree must be >= 0, got {sh_degree}")
+        self.active_sh_degree = 0
+        self.max_sh_degree = int(sh_degree)
+        self._deformation = deformation if deformation is not None else DeformNetwork(hidden_args)
+        rest = (self.max_sh_degree + 1) ** 2 - 1
+        self._xyz = nn.Parameter(torch.empty(0, 3))
+        self._features_dc = nn.Parameter(torch.empty(0, 1, 3))
+        self._features_rest = nn.Parameter(torch.empty(0, rest, 3))
+        self._scaling = nn.Parameter(torch.empty(0, 3))
+        self._rotation = nn.Parameter(torch.empty(0, 4))
+        self._opacity = nn.Parameter(torch.empty(0, 1))
+        self._deformation_table = torch.empty(0, dtype=torch.bool)
+        self._deformation_accum = torch.empty(0, 3)
+        self.max_radii2D = torch.empty(0)
+        self.xyz_gradient_accum = torch.empty(0, 1)
+        self.denom = torch.empty(0, 1)
+        self.optimizer: torch.optim.Optimizer | None = None
+        self.percent_dense = 0.0
+        self.spatial_lr_scale = 0.0
+        self.xyz_scheduler_args = self.deformation_scheduler_args = self.grid_scheduler_args = None
+        self._extra_buffers: dict[str, Tensor] = {}
+        self._extra_params: dict[str, nn.Parameter] = {}
+        self._extra_param_lrs: dict[str, float] = {}
+        # group name -> {id(param): requires_grad before freezing}
+        self._frozen: dict[str, dict[int, bool]] = {}
+
+    # ========================================================================================
+    # Activated views (4DGS property names) and basic facts.
+    @property
+    def get_xyz(self) -> Tensor:
+        return self._xyz
+
+    @property
+    def get_scaling(self) -> Tensor:
+        return torch.exp(self._scaling)
+
+    @property
+    def get_rotation(self) -> Tensor:
+        return F.normalize(self._rotation, dim=-1)
+
+    @property
+    def get_opacity(self) -> Tensor:
+        return torch.sigmoid(self._opacity)
+
+    @property
+    def get_features(self) -> Tensor:
+        return torch.cat((self._features_dc, self._features_rest), 1)
+
+    @property
+    def get_aabb(self) -> tuple[Tensor, Tensor]:
+        return self._deformation.get_aabb
+
+    @property
+    def num_gaussians(self) -> int:
+        return self._xyz.shape[0]
+
+    @property
+    def device(self) -> torch.device:
+        return self._xyz.device
+
+    @property
+    def deformation(self) -> nn.Module:
+        return self._deformation
+
+    def oneupSHdegree(self) -> None:
+        if self.active_sh_degree < self.max_sh_degree:
+            self.active_sh_degree += 1
+
+    # ========================================================================================
+    # Initialisation.
+    def create_from_pcd(
+        self, points: Any, colors: Any, spatial_lr_scale: float, device: torch.device | str | None = None
+    ) -> None:
+        """4DGS initialisation from a coloured point cloud.
+
+        Args:
+            points: [P, 3] positions (numpy or tensor; a tensor's device is used unless
+                ``device`` is given).
+            colors: [P, 3] RGB in [0, 1].
+            spatial_lr_scale: scene extent scaling the position/deformation/grid learning rates.
+        """
+        if device is None:
+            device = points.device if isinstance(points, Tensor) else torch.device("cpu")
+        xyz = torch.as_tensor(np.asarray(points.detach().cpu() if isinstance(points, Tensor) else points),
+                              dtype=torch.float32)
+        rgb = torch.as_tensor(np.asarray(colors.detach().cpu() if isinstance(colors, Tensor) else colors),
+                              dtype=torch.float32)
+        if xyz.dim() != 2 or xyz.shape[1] != 3:
+            raise ValueError(f"create_from_pcd: points must be [P, 3], got {list(xyz.shape)}")
+        if rgb.shape != xyz.shape:
+            raise ValueError(f"create_from_pcd: colors must be [P, 3] = {list(xyz.shape)}, got {list(rgb.shape)}")
+        if not torch.isfinite(xyz).all() or not torch.isfinite(rgb).all():
+            raise ValueError("create_from_pcd: points or colors contain NaN or inf")
+        count = xyz.shape[0]
+        dist2 = torch.from_numpy(mean_squared_knn_distance(xyz.numpy().astype(np.float64))).float()
+        log_scales = torch.log(torch.sqrt(dist2.clamp_min(1e-7)))[:, None].repeat(1, 3)
+        rotations = torch.zeros(count, 4)
+        rotations[:, 0] = 1.0
+        features = torch.zeros(count, (self.max_sh_degree + 1) ** 2, 3)
+        features[:, 0] = rgb_to_sh(rgb)
+
+        self.spatial_lr_scale = float(spatial_lr_scale)
+        self._deformation = self._deformation.to(device)
+        if hasattr(self._deformation, "set_aabb"):
+            self._deformation.set_aabb(xyz.max(0).values, xyz.min(0).values)
+        rows = {
+            "xyz": xyz,
+            "f_dc": features[:, :1].contiguous(),
+            "f_rest": features[:, 1:].contiguous(),
+            "opacity": inverse_sigmoid(torch.full((count, 1), 0.1)),
+            "scaling": log_scales,
+            "rotation": rotations,
+        }
+        self.set_gaussians(rows, device=device)
+        self.set_extras({}, {}, {}, "create_from_pcd")
+
+    def set_gaussians(
+        self,
+        rows: Mapping[str, Tensor],
+        deformation_table: Tensor | None = None,
+        deformation_accum: Tensor | None = None,
+        device: torch.device | str | None = None,
+        source: str = "set_gaussians",
+    ) -> None:
+        """Install Gaussians: ``rows`` has the keys of ``ROW_GROUPS`` (pre-activation values).
+
+        The deformation table defaults to all True and the accumulator to zeros; statistics
+        restart at zero and the optimizer is dropped (call ``training_setup`` again).
+        Registered buffers/parameters are left alone (see ``set_extras``).
+        """
+        self.check_rows(rows, source)
+        count = rows["xyz"].shape[0]
+        device = torch.device(device) if device is not None else rows["xyz"].device
+        if deformation_table is None:
+            deformation_table = torch.ones(count, dtype=torch.bool)
+        if deformation_accum is None:
+            deformation_accum = torch.zeros(count, 3)
+        if deformation_table.shape != (count,) or deformation_accum.shape != (count, 3):
+            raise ValueError(
+                f"{source}: deformation table {list(deformation_table.shape)} / accumulator "
+                f"{list(deformation_accum.shape)} do not fit {count} Gaussians"
+            )
+        self._set_rows(**{name: value.to(device, torch.float32) for name, value in rows.items()})
+        self._deformation_table = deformation_table.to(device, torch.bool)
+        self._deformation_accum = deformation_accum.to(device, torch.float32)
+        self._reset_stats(count, device)
+        self.optimizer = None
+
+    def _set_rows(self, **rows: Tensor) -> None:
+        """Install fresh per-Gaussian parameters (no optimizer bookkeeping)."""
+        for name, value in rows.items():
+            param = nn.Parameter(value.detach(), requires_grad=name not in self._frozen)
+            setattr(self, ROW_GROUPS[name], param)
+
+    def _reset_stats(self, count: int, device: torch.device) -> None:
+        self.xyz_gradient_accum = torch.zeros(count, 1, device=device)
+        self.denom = torch.zeros(count, 1, device=device)
+        self.max_radii2D = torch.zeros(count, device=device)
+
+    # ========================================================================================
+    # Optimizer.
+    def training_setup(self, opt: Any) -> None:
+        """Adam (eps 1e-15) with 4DGS's named groups plus one group per registered parameter."""
+        if self.spatial_lr_scale <= 0:
+            raise ValueError(
+                "training_setup: spatial_lr_scale is 0; call create_from_pcd or set spatial_lr_scale "
+                "(the cameras' extent) first"
+            )
+        scale = self.spatial_lr_scale
+        self.percent_dense = float(_opt_value(opt, "percent_dense"))
+        count, device = self.num_gaussians, self.device
+        self.xyz_gradient_accum = torch.zeros(count, 1, device=device)
+        self.denom = torch.zeros(count, 1, device=device)
+        self._deformation_accum = torch.zeros(count, 3, device=device)
+        feature_lr = float(_opt_value(opt, "feature_lr"))
+        lrs = {
+            "xyz": _opt_value(opt, "position_lr_init") * scale,
+            "deformation": _opt_value(opt, "deformation_lr_init") * scale,
+            "grid": _opt_value(opt, "grid_lr_init") * scale,
+            "f_dc": feature_lr,
+            "f_rest": feature_lr / 20.0,
+            "opacity": _opt_value(opt, "opacity_lr"),
+            "scaling": _opt_value(opt, "scaling_lr"),
+            "rotation": _opt_value(opt, "rotation_lr"),
+        }
+        groups = [{"params": self._group_params(name), "lr": float(lrs[name]), "name": name} for name in GROUP_ORDER]
+        groups += [{"params": [p], "lr": self._extra_param_lrs[n], "name": n} for n, p in self._extra_params.items()]
+        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+
+        max_steps = _opt_value(opt, "position_lr_max_steps")
+        deformation_delay = _opt_value(opt, "deformation_lr_delay_mult")
+        self.xyz_scheduler_args = get_expon_lr_func(
+            lr_init=_opt_value(opt, "position_lr_init") * scale,
+            lr_final=_opt_value(opt, "position_lr_final") * scale,
+            lr_delay_mult=_opt_value(opt, "position_lr_delay_mult"),
+            max_steps=max_steps,
+        )
+        self.deformation_scheduler_args = get_expon_lr_func(
+            lr_init=_opt_value(opt, "deformation_lr_init") * scale,
+            lr_final=_opt_value(opt, "deformation_lr_final") * scale,
+            lr_delay_mult=deformation_delay,
+            max_steps=max_steps,
+        )
+        self.grid_scheduler_args = get_expon_lr_func(
+            lr_init=_opt_value(opt, "grid_lr_init") * scale,
+            lr_final=_opt_value(opt, "grid_lr_final") * scale,
+            lr_delay_mult=deformation_delay,
+            max_steps=max_steps,
+        )
+
+    def update_learning_rate(self, iteration: int) -> dict[str, float]:
+        """Apply the xyz/deformation/grid schedules at ``iteration``; returns the rates set."""
+        if self.optimizer is None:
+            raise ValueError("update_learning_rate: call training_setup first")
+        schedules = {
+            "xyz": self.xyz_scheduler_args,
+            "deformation": self.deformation_scheduler_args,
+            "grid": self.grid_scheduler_args,
+        }
+        rates = {}
+        for group in self.optimizer.param_groups:
+            schedule = schedules.get(group["name"])
+            if schedule is not None:
+                group["lr"] = rates[group["name"]] = schedule(iteration)
+        return rates
+
+    @property
+    def group_names(self) -> list[str]:
+        """Every optimizer group name: 4DGS's eight, then registered parameters."""
+        return list(GROUP_ORDER) + list(self._extra_params)
+
+    def _group_params(self, name: str) -> list[nn.Parameter]:
+        if name in ROW_GROUPS:
+            return [getattr(self, ROW_GROUPS[name])]
+        if name == "deformation":
+            return list(self._deformation.get_mlp_parameters())
+        if name == "grid":
+            return list(self._deformation.get_grid_parameters())
+        if name in self._extra_params:
+            return [self._extra_params[name]]
+        raise ValueError(f"unknown parameter group {name!r} (groups: {self.group_names})")
+
+    # ----------------------------------------------------------------------------------------
+    def freeze(self, group_names: str | Iterable[str]) -> None:
+        """Stop updating the named groups (e.g. "deformation", "grid"): no gradient, no Adam step."""
+        names = [group_names] if isinstance(group_names, str) else list(group_names)
+        for name in names:
+            params = self._group_params(name)
+            if name in self._frozen:
+                continue
+            self._frozen[name] = {id(p): p.requires_grad for p in params}
+            for p in params:
+                p.requires_grad_(False)
+                p.grad = None
+
+    def unfreeze(self, group_names: str | Iterable[str]) -> None:
+        """Undo ``freeze`` (parameters get back the trainability they had)."""
+        names = [group_names] if isinstance(group_names, str) else list(group_names)
+        for name in names:
+            params = self._group_params(name)
+            saved = self._frozen.pop(name, None)
+            if saved is None:
+                continue
+            for p in params:
+                p.requires_grad_(saved.get(id(p), True))
+
+    @property
+    def frozen_groups(self) -> list[str]:
+        return list(self._frozen)
+
+    # ========================================================================================
+    # Per-Gaussian buffers and parameters registered by plugins.
+    def _check_new_name(self, name: str, tensor: Tensor) -> None:
+        if not isinstance(name, str) or not name.isidentifier():
+            raise ValueError(f"per-Gaussian attribute name must be an identifier, got {name!r}")
+        if name in GROUP_ORDER or name in self._extra_buffers or name in self._extra_params:
+            raise ValueError(f"per-Gaussian attribute {name!r} already exists")
+        if not isinstance(tensor, Tensor) or tensor.dim() == 0 or tensor.shape[0] != self.num_gaussians:
+            shape = list(tensor.shape) if isinstance(tensor, Tensor) else type(tensor).__name__
+            raise ValueError(
+                f"per-Gaussian attribute {name!r}: first dimension must be {self.num_gaussians}, got {shape}"
+            )
+
+    def register_gaussian_buffer(self, name: str, tensor: Tensor) -> None:
+        """A non-trainable per-Gaussian tensor [N, ...] kept in step by clone/split/prune."""
+        self._check_new_name(name, tensor)
+        self._extra_buffers[name] = tensor.detach().to(self.device)
+
+    def set_gaussian_buffer(self, name: str, tensor: Tensor) -> None:
+        """Replace a registered buffer's values (same shape)."""
+        if name not in self._extra_buffers:
+            raise ValueError(f"no registered per-Gaussian buffer {name!r} (have {list(self._extra_buffers)})")
+        old = self._extra_buffers[name]
+        if tensor.shape != old.shape:
+            raise ValueError(f"buffer {name!r}: expected shape {list(old.shape)}, got {list(tensor.shape)}")
+        self._extra_buffers[name] = tensor.detach().to(old.device, old.dtype)
+
+    def register_gaussian_parameter(self, name: str, tensor: Tensor, lr: float) -> nn.Parameter:
+        """A trainable per-Gaussian tensor [N, ...] with its own Adam group ``name`` at rate ``lr``."""
+        self._check_new_name(name, tensor)
+        if not tensor.is_floating_point():
+            raise ValueError(f"per-Gaussian parameter {name!r} must be floating point, got {tensor.dtype}")
+        param = nn.Parameter(tensor.detach().to(self.device).clone())
+        self._extra_params[name] = param
+        self._extra_param_lrs[name] = float(lr)
+        if self.optimizer is not None:
+            self.optimizer.add_param_group({"params": [param], "lr": float(lr), "name": name})
+        return param
+
+    @property
+    def registered_buffers(self) -> Mapping[str, Tensor]:
+        return MappingProxyType(self._extra_buffers)
+
+    @property
+    def registered_parameters(self) -> Mapping[str, nn.Parameter]:
+        return MappingProxyType(self._extra_params)
+
+    @property
+    def registered_parameter_lrs(self) -> Mapping[str, float]:
+        return MappingProxyType(self._extra_param_lrs)
+
+    @property
+    def gaussian_buffers(self) -> Mapping[str, Tensor]:
+        """Registered per-Gaussian buffers and parameters by name (read-only mapping)."""
+        return MappingProxyType({**self._extra_buffers, **self._extra_params})
+
+    # ========================================================================================
+    # States handed to the renderer.
+    def canonical_state(self) -> GaussianState:
+        """The stored (canonical, pre-activation) Gaussians."""
+        return GaussianState(self._xyz, self._scaling, self._rotation, self._opacity, self.get_features)
+
+    def _times(self, time: float | Tensor) -> Tensor:
+        count = self.num_gaussians
+        if not isinstance(time, Tensor):
+            return torch.full((count, 1), float(time), device=self.device, dtype=self._xyz.dtype)
+        time = time.to(self.device, self._xyz.dtype)
+        if time.numel() == 1:
+            return time.reshape(1, 1).expand(count, 1)
+        if time.shape in ((count,), (count, 1)):
+            return time.reshape(count, 1)
+        raise ValueError(f"deform: time must be a scalar, [N] or [N, 1] with N={count}, got {list(time.shape)}")
+
+    def deform(self, time: float | Tensor, stage: str) -> GaussianState:
+        """Gaussians at ``time`` (scalar or per-Gaussian): canonical in the coarse stage."""
+        if stage not in STAGES:
+            raise ValueError(f"deform: stage must be one of {STAGES}, got {stage!r}")
+        state = self.canonical_state()
+        if stage == "coarse":
+            return state
+        return self._deformation(state, self._times(time), self.gaussian_buffers)
+
+    def compute_regulation(
+        self, time_smoothness_weight: float, l1_time_planes_weight: float, plane_tv_weight: float
+    ) -> Tensor:
+        """4DGS's HexPlane regularisers (delegated to the deformation module)."""
+        return self._deformation.compute_regulation(time_smoothness_weight, l1_time_planes_weight, plane_tv_weight)
+
+    # ========================================================================================
+    # Row edits shared by prune / densify / reset, keeping Adam state and buffers in step.
+    def _row_param_names(self) -> list[str]:
+        return list(ROW_GROUPS) + list(self._extra_params)
+
+    def _get_row_param(self, name: str) -> nn.Parameter:
+        return getattr(self, ROW_GROUPS[name]) if name in ROW_GROUPS else self._extra_params[name]
+
+    def _install_row_param(self, name: str, data: Tensor, map_rows) -> None:
+        param = nn.Parameter(data, requires_grad=name not in self._frozen)
+        if self.optimizer is not None:
+            swap_group_param(self.optimizer, name, param, map_rows)
+        if name in ROW_GROUPS:
+            setattr(self, ROW_GROUPS[name], param)
+        else:
+            self._extra_params[name] = param
+
+    def _keep_rows(self, keep: Tensor) -> None:
+        for name in self._row_param_names():
+            self._install_row_param(name, self._get_row_param(name).detach()[keep], lambda t: t[keep])
+        self._deformation_accum = self._deformation_accum[keep]
+        self.xyz_gradient_accum = self.xyz_gradient_accum[keep]
+        self._deformation_table = self._deformation_table[keep]
+        self.denom = self.denom[keep]
+        self.max_radii2D = self.max_radii2D[keep]
+        for name, value in self._extra_buffers.items():
+            self._extra_buffers[name] = value[keep]
+
+    @torch.no_grad()
+    def prune_points(self, mask: Tensor) -> None:
+        """Remove the Gaussians where ``mask`` [N] (bool) is True."""
+        if mask.dtype != torch.bool or mask.shape != (self.num_gaussians,):
+            raise ValueError(
+                f"prune_points: mask must be bool [{self.num_gaussians}], got {mask.dtype} {list(mask.shape)}"
+            )
+        self._keep_rows(~mask)
+
+    def _rows_of(self, selection: Tensor, repeats: int = 1) -> dict[str, Tensor]:
+        """Every per-Gaussian parameter and buffer at ``selection``, tiled ``repeats`` times."""
+        rows = {name: _repeat_rows(self._get_row_param(name).detach()[selection], repeats)
+                for name in self._row_param_names()}
+        rows["deformation_table"] = _repeat_rows(self._deformation_table[selection], repeats)
+        for name, value in self._extra_buffers.items():
+            rows[name] = _repeat_rows(value[selection], repeats)
+        return rows
+
+    def densification_postfix(self, new_rows: Mapping[str, Tensor]) -> None:
+        """Append Gaussians (every per-Gaussian parameter and buffer given by name) and, as 4DGS
+        does, reset the gradient statistics, max radii and deformation accumulators of all."""
+        for name in self._row_param_names():
+            new = new_rows[name]
+            data = torch.cat((self._get_row_param(name).detach(), new), 0)
+            self._install_row_param(name, data, lambda t, new=new: torch.cat((t, torch.zeros_like(new)), 0))
+        self._deformation_table = torch.cat((self._deformation_table, new_rows["deformation_table"]), 0)
+        for name, value in self._extra_buffers.items():
+            self._extra_buffers[name] = torch.cat((value, new_rows[name].to(value.dtype)), 0)
+        count, device = self.num_gaussians, self.device
+        self._reset_stats(count, device)
+        self._deformation_accum = torch.zeros(count, 3, device=device)
+
+    @torch.no_grad()
+    def densify_and_clone(self, grads: Tensor, grad_threshold: float, scene_extent: float) -> int:
+        """Copy small Gaussians with large view-space gradients; returns how many were added."""
+        selected = torch.norm(grads, dim=-1) >= grad_threshold
+        selected &= self.get_scaling.max(dim=1).values <= self.percent_dense * scene_extent
+        self.densification_postfix(self._rows_of(selected))
+        return int(selected.sum())
+
+    @torch.no_grad()
+    def densify_and_split(self, grads: Tensor, grad_threshold: float, scene_extent: float, N: int = 2) -> int:
+        """Replace large Gaussians with large gradients by ``N`` smaller samples; returns how many split."""
+        count = self.num_gaussians
+        padded = torch.zeros(count, device=self.device)
+        padded[: grads.shape[0]] = grads.squeeze(-1)
+        selected = padded >= grad_threshold
+        selected &= self.get_scaling.max(dim=1).values > self.percent_dense * scene_extent
+        num_selected = int(selected.sum())
+        if num_selected == 0:
+            return 0
+        stds = _repeat_rows(self.get_scaling.detach()[selected], N)
+        samples = torch.normal(mean=torch.zeros_like(stds), std=stds)
+        rotations = _repeat_rows(quaternion_to_matrix(self._rotation.detach()[selected]), N)
+        rows = self._rows_of(selected, N)
+        rows["xyz"] = torch.bmm(rotations, samples.unsqueeze(-1)).squeeze(-1) + rows["xyz"]
+        rows["scaling"] = torch.log(stds / (0.8 * N))
+        self.densification_postfix(rows)
+        prune = torch.cat((selected, torch.zeros(N * num_selected, device=self.device, dtype=torch.bool)))
+        self.prune_points(prune)
+        return num_selected
+
+    @torch.no_grad()
+    def densify(self, max_grad: float, extent: float) -> tuple[int, int]:
+        """4DGS's ``densify``: clone then split by mean view-space gradient; returns (cloned, split)."""
+        grads = self.xyz_gradient_accum / self.denom
+        grads[grads.isnan()] = 0.0
+        cloned = self.densify_and_clone(grads, max_grad, extent)
+        split = self.densify_and_split(grads, max_grad, extent)
+        return cloned, split
+
+    @torch.no_grad()
+    def prune(self, min_opacity: float, extent: float, max_screen_size: float | None) -> int:
+        """4DGS's ``prune``: transparent Gaussians, and (with ``max_screen_size``) too large ones."""
+        mask = (self.get_opacity < min_opacity).squeeze(-1)
+        if max_screen_size:
+            mask |= self.max_radii2D > max_screen_size
+            mask |= self.get_scaling.max(dim=1).values > 0.1 * extent
+        self.prune_points(mask)
+        return int(mask.sum())
+
+    @torch.no_grad()
+    def reset_opacity(self) -> None:
+        """Clamp opacities to at most 0.01 and restart their Adam moments."""
+        opacities = inverse_sigmoid(torch.clamp(self.get_opacity.detach(), max=0.01))
+        self._install_row_param("opacity", opacities, None)
+
+    # ----------------------------------------------------------------------------------------
+    @torch.no_grad()
+    def add_densification_stats(self, means2d_grad: Tensor, visible: Tensor, width: int, height: int) -> None:
+        """Accumulate view-space gradient norms of visible Gaussians.
+
+        ``means2d_grad`` [N, 2] is in pixel units (summed over the batch's views); it is converted
+        to the NDC units of 3DGS/4DGS's rasterizer (x * W/2, y * H/2) so that 4DGS's thresholds
+        (e.g. 0.0002) keep their meaning.
+        """
+        count = self.num_gaussians
+        if means2d_grad.shape != (count, 2):
+            raise ValueError(
+                f"add_densification_stats: means2d_grad must be [{count}, 2], got {list(means2d_grad.shape)}"
+            )
+        if visible.shape != (count,) or visible.dtype != torch.bool:
+            raise ValueError(
+                f"add_densification_stats: visible must be bool [{count}], got {visible.dtype} {list(visible.shape)}"
+            )
+        to_ndc = means2d_grad.new_tensor([0.5 * width, 0.5 * height])
+        norms = torch.norm(means2d_grad.detach() * to_ndc, dim=-1, keepdim=True)
+        self.xyz_gradient_accum[visible] += norms[visible]
+        self.denom[visible] += 1
+
+    @torch.no_grad()
+    def update_max_radii(self, radii: Tensor, visible: Tensor) -> None:
+        """max_radii2D = max(max_radii2D, radii) on visible Gaussians (radii [N] in pixels)."""
+        radii = radii.detach().to(self.max_radii2D.dtype)
+        self.max_radii2D[visible] = torch.max(self.max_radii2D[visible], radii[visible])
+
+    # ========================================================================================
+    # Whole-model snapshots (4DGS's checkpoint tuple).
+    def capture(self) -> tuple:
+        """4DGS's 14-tuple (copies, so later training does not alter it) plus our extras dict."""
+        if self.optimizer is None:
+            raise ValueError("capture: call training_setup first (the snapshot includes the optimizer)")
+
+        def snap(t: Tensor) -> Tensor:
+            return t.detach().clone()
+
+        extras = {
+            "deformation_accum": snap(self._deformation_accum),
+            "buffers": {n: snap(v) for n, v in self._extra_buffers.items()},
+            "parameters": {n: snap(v) for n, v in self._extra_params.items()},
+            "parameter_lrs": dict(self._extra_param_lrs),
+            "frozen": list(self._frozen),
+        }
+        return (
+            self.active_sh_degree,
+            snap(self._xyz),
+            {k: snap(v) for k, v in self._deformation.state_dict().items()},
+            snap(self._deformation_table),
+            snap(self._features_dc),
+            snap(self._features_rest),
+            snap(self._scaling),
+            snap(self._rotation),
+            snap(self._opacity),
+            snap(self.max_radii2D),
+            snap(self.xyz_gradient_accum),
+            snap(self.denom),
+            copy.deepcopy(self.optimizer.state_dict()),
+            self.spatial_lr_scale,
+            extras,
+        )
+
+    def restore(self, captured: tuple | list, opt: Any, source: str = "checkpoint") -> None:
+        """Load a ``capture()`` (ours, or 4DGS's 14-tuple) and rebuild the optimizer with ``opt``.
+
+        Registered buffers/parameters and frozen groups become those of the snapshot (none for
+        4DGS's). Everything is checked before the model is changed.
+        """
+        lengths = (CAPTURE_LENGTH_4DGS, CAPTURE_LENGTH_4DGS + 1)
+        if not isinstance(captured, (tuple, list)) or len(captured) not in lengths:
+            raise ValueError(f"{source}: expected 4DGS's 14-element capture tuple (optionally + extras)")
+        (active_sh_degree, xyz, deformation_state, table, f_dc, f_rest, scaling, rotation, opacity,
+         max_radii, grad_accum, denom, optimizer_state, spatial_lr_scale) = captured[:CAPTURE_LENGTH_4DGS]
+        extras = captured[CAPTURE_LENGTH_4DGS] if len(captured) > CAPTURE_LENGTH_4DGS else {}
+        rows = {"xyz": xyz, "f_dc": f_dc, "f_rest": f_rest, "opacity": opacity, "scaling": scaling,
+                "rotation": rotation}
+        self.check_rows(rows, source)
+        count = xyz.shape[0]
+        per_gaussian = {"max_radii2D": max_radii, "xyz_gradient_accum": grad_accum, "denom": denom,
+                        "deformation_table": table, "deformation_accum": extras.get("deformation_accum", xyz),
+                        **extras.get("buffers", {}), **extras.get("parameters", {})}
+        for name, value in per_gaussian.items():
+            if not isinstance(value, Tensor) or value.dim() == 0 or value.shape[0] != count:
+                got = list(value.shape) if isinstance(value, Tensor) else type(value).__name__
+                raise ValueError(f"{source}: {name} is {got}, expected {count} rows")
+        missing_lrs = [n for n in extras.get("parameters", {}) if n not in extras.get("parameter_lrs", {})]
+        if missing_lrs:
+            raise ValueError(f"{source}: no learning rate stored for per-Gaussian parameters {missing_lrs}")
+        check_deformation_state(self._deformation, deformation_state, source)
+        parameters = extras.get("parameters", {})
+        unknown_frozen = [n for n in extras.get("frozen", []) if n not in GROUP_ORDER and n not in parameters]
+        if unknown_frozen:
+            raise ValueError(f"{source}: frozen groups {unknown_frozen} do not exist")
+        expected_groups = {name: [rows[name].shape] for name in ROW_GROUPS}
+        expected_groups["deformation"] = [p.shape for p in self._deformation.get_mlp_parameters()]
+        expected_groups["grid"] = [p.shape for p in self._deformation.get_grid_parameters()]
+        expected_groups.update({name: [value.shape] for name, value in parameters.items()})
+        check_state_by_group_name(optimizer_state, expected_groups, source)
+
+        device = xyz.device
+        self.unfreeze(list(self._frozen))
+        self._deformation = self._deformation.to(device)
+        self._deformation.load_state_dict(deformation_state, strict=True)
+        self.set_gaussians(rows, table, extras.get("deformation_accum"), device, source)
+        self.active_sh_degree = int(active_sh_degree)
+        self.spatial_lr_scale = float(spatial_lr_scale)
+        self.set_extras(extras.get("buffers", {}), parameters, extras.get("parameter_lrs", {}), source)
+        self.training_setup(opt)
+        self.max_radii2D = max_radii.to(device, torch.float32)
+        self.xyz_gradient_accum = grad_accum.to(device)
+        self.denom = denom.to(device)
+        if "deformation_accum" in extras:  # training_setup zeroed it, as in 4DGS
+            self._deformation_accum = extras["deformation_accum"].to(device)
+        load_state_by_group_name(self.optimizer, optimizer_state, source)
+        self.freeze(extras.get("frozen", []))
+
+    def check_rows(self, rows: Mapping[str, Tensor], source: str) -> None:
+        """Raise ``ValueError`` unless the built-in per-Gaussian tensors fit this model."""
+        count = rows["xyz"].shape[0]
+        rest = (self.max_sh_degree + 1) ** 2 - 1
+        expected = {"xyz": (count, 3), "f_dc": (count, 1, 3), "f_rest": (count, rest, 3),
+                    "opacity": (count, 1), "scaling": (count, 3), "rotation": (count, 4)}
+        for name, shape in expected.items():
+            got = tuple(rows[name].shape)
+            if got != shape:
+                hint = ""
+                if name == "f_rest" and len(got) == 3:
+                    degree = math.isqrt(got[1] + 1) - 1
+                    hint = f" (SH degree {degree} in the file, the model has {self.max_sh_degree})"
+                raise ValueError(f"{source}: {ROW_GROUPS[name]} has shape {list(got)}, expected {list(shape)}{hint}")
+
+    def set_extras(
+        self,
+        buffers: Mapping[str, Tensor],
+        parameters: Mapping[str, Tensor],
+        parameter_lrs: Mapping[str, float],
+        source: str,
+    ) -> None:
+        """Replace all registered per-Gaussian buffers and parameters (e.g. from a checkpoint)."""
+        self._extra_buffers, self._extra_params, self._extra_param_lrs = {}, {}, {}
+        for name, value in buffers.items():
+            self._register_checked(name, value, source, lambda n, v: self.register_gaussian_buffer(n, v))
+        for name, value in parameters.items():
+            if name not in parameter_lrs:
+                raise ValueError(f"{source}: no learning rate stored for per-Gaussian parameter {name!r}")
+            self._register_checked(
+                name, value, source, lambda n, v: self.register_gaussian_parameter(n, v, parameter_lrs[n])
+            )
+
+    @staticmethod
+    def _register_checked(name: str, value: Tensor, source: str, register) -> None:
+        try:
+            register(name, value)
+        except ValueError as err:
+            raise ValueError(f"{source}: {err}") from None

@@ -1,0 +1,265 @@
+"""Bilinear lookups on many 2D feature planes, multiplied in groups (HexPlane's inner loop).
+
+Semantics: for every plane p (shape [1, C, H, W], sampled at (u, v) = (coord[u_axis], coord[v_axis])
+in [-1, 1]) the sample equals ``F.grid_sample(plane, ..., mode='bilinear', padding_mode='border',
+align_corners=True)``, gradients included (a clamped coordinate gets none). Consecutive groups of
+``group`` planes are multiplied elementwise; the groups' products are concatenated.
+
+Why not ``grid_sample``: on CPU its backward is a per-channel scatter, single-threaded for one
+batch item, and it dominates a 4DGS training step. Here the planes form one channels-last table
+[sum(H*W), C]; a sample is a 4-row weighted ``embedding_bag`` (a fused, vectorised kernel). The
+table gradient orders each plane's points by cell once and sums their sample gradients per cell
+with ``embedding_bag`` again; the coordinate gradient uses ``embedding_bag`` with the derivative
+weights. The work runs plane by plane on [N, C] tensors: one [P, N, C] tensor
+would exceed the allocator's reuse threshold at 100k points and page-fault on every call.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+
+@dataclass(frozen=True)
+class PlaneLayout:
+    """Where each plane sits in the concatenated table and which coordinates address it.
+
+    Per plane p: ``u_axis``/``v_axis`` index the coordinates (spatial columns first, then time
+    columns), ``width``/``height`` are W/H, ``offset`` its first table row, ``shifts`` the row
+    offsets of its 4 bilinear corners from the top-left one (0 for a corner outside a 1-wide or
+    1-high plane, which is never weighted). ``group`` consecutive planes are multiplied.
+    """
+
+    u_axis: tuple[int, ...]
+    v_axis: tuple[int, ...]
+    width: tuple[int, ...]
+    height: tuple[int, ...]
+    offset: tuple[int, ...]
+    shifts: tuple[tuple[int, int, int, int], ...]
+    group: int
+    num_cells: int
+
+    @staticmethod
+    def build(sizes: Sequence[tuple[int, int]], axes: Sequence[tuple[int, int]], group: int) -> PlaneLayout:
+        """``sizes`` [(H, W)] and ``axes`` [(u_axis, v_axis)] per plane, in table order."""
+        if len(sizes) != len(axes) or group < 1 or len(sizes) % group:
+            raise ValueError(f"PlaneLayout: {len(sizes)} planes, {len(axes)} axis pairs, groups of {group}")
+        offsets, total = [], 0
+        for h, w in sizes:
+            offsets.append(total)
+            total += h * w
+        shifts = []
+        for h, w in sizes:
+            col, row = (1 if w > 1 else 0), (w if h > 1 else 0)
+            shifts.append((0, col, row, col + row))
+        return PlaneLayout(
+            u_axis=tuple(a for a, _ in axes),
+            v_axis=tuple(b for _, b in axes),
+            width=tuple(w for _, w in sizes),
+            height=tuple(h for h, _ in sizes),
+            offset=tuple(offsets),
+            shifts=tuple(shifts),
+            group=group,
+            num_cells=total,
+        )
+
+    @property
+    def num_planes(self) -> int:
+        return len(self.u_axis)
+
+
+def planes_to_table(planes: Sequence[Tensor]) -> Tensor:
+    """[sum(H*W), C] channels-last table of [1, C, H, W] planes (differentiable)."""
+    channels = planes[0].shape[1]
+    return torch.cat([plane.reshape(channels, -1) for plane in planes], 1).t().contiguous()
+
+
+@dataclass
+class _AxisCells:
+    """align_corners sampling along one axis: top-left index, fraction, "inside" mask, all [N]."""
+
+    index: Tensor
+    frac: Tensor
+    inside: Tensor
+
+    @staticmethod
+    def of(coord: Tensor, size: int) -> _AxisCells:
+        extent = float(size - 1)
+        scaled = (coord + 1.0) * (0.5 * extent)
+        inside = (scaled > 0) & (scaled < extent)  # border padding: no gradient where clamped
+        clamped = scaled.clamp(0.0, extent)
+        index = clamped.floor().clamp_(max=max(extent - 1.0, 0.0))
+        return _AxisCells(index.long(), clamped - index, inside)
+
+
+class _PlaneCells:
+    """Per-plane corner rows and bilinear weights of N points (axis lookups shared by planes)."""
+
+    def __init__(self, coords: Tensor, layout: PlaneLayout) -> None:
+        axes: dict[tuple[int, int], _AxisCells] = {}
+
+        def axis(index: int, size: int) -> _AxisCells:
+            if (index, size) not in axes:
+                axes[(index, size)] = _AxisCells.of(coords[index], size)
+            return axes[(index, size)]
+
+        self.u = [axis(a, w) for a, w in zip(layout.u_axis, layout.width)]
+        self.v = [axis(b, h) for b, h in zip(layout.v_axis, layout.height)]
+        self.layout = layout
+        self._corners: dict[int, Tensor] = {}
+        self._weights: dict[int, Tensor] = {}
+
+    def base(self, plane: int) -> Tensor:
+        """[N] table row of each point's top-left corner on ``plane``."""
+        return self.corners(plane)[:, 0]
+
+    def corners(self, plane: int) -> Tensor:
+        """[N, 4] table rows of the 4 corners (top-left, top-right, bottom-left, bottom-right)."""
+        if plane not in self._corners:
+            layout = self.layout
+            base = self.v[plane].index * layout.width[plane] + (self.u[plane].index + layout.offset[plane])
+            self._corners[plane] = base.unsqueeze(1) + base.new_tensor(layout.shifts[plane])
+        return self._corners[plane]
+
+    def weights(self, plane: int) -> Tensor:
+        """[N, 4] bilinear weights of the corners."""
+        if plane not in self._weights:
+            fu, fv = self.u[plane].frac, self.v[plane].frac
+            gu, gv = 1.0 - fu, 1.0 - fv
+            self._weights[plane] = torch.stack((gu * gv, fu * gv, gu * fv, fu * fv), 1)
+        return self._weights[plane]
+
+    def sample(self, table: Tensor, plane: int) -> Tensor:
+        """[N, C] bilinear samples of ``plane``."""
+        return F.embedding_bag(self.corners(plane), table, per_sample_weights=self.weights(plane), mode="sum")
+
+
+class _PlaneProductLookup(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, table: Tensor, space: Tensor, time: Tensor, layout: PlaneLayout) -> Tensor:
+        coords = torch.cat((space, time), 1).t().contiguous()  # [D, N]
+        cells = _PlaneCells(coords, layout)
+        detached = table.detach()  # embedding_bag's fast forward-only path needs no-grad inputs
+        products = []
+        for first in range(0, layout.num_planes, layout.group):
+            product = cells.sample(detached, first)
+            for plane in range(first + 1, first + layout.group):
+                product.mul_(cells.sample(detached, plane))
+            products.append(product)
+        # Samples are recomputed in backward (one cheap embedding_bag each) instead of kept.
+        ctx.save_for_backward(table, coords)
+        ctx.layout = layout
+        ctx.num_space = space.shape[1]
+        return torch.cat(products, 1)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_out: Tensor):
+        table, coords = ctx.saved_tensors
+        table = table.detach()
+        layout: PlaneLayout = ctx.layout
+        num_space = ctx.num_space
+        need_table, need_space, need_time = ctx.needs_input_grad[:3]
+        cells = _PlaneCells(coords, layout)
+        channels = table.shape[1]
+        grad_table = table.new_zeros(layout.num_cells, channels) if need_table else None
+        grad_coords = coords.new_zeros(coords.shape) if (need_space or need_time) else None
+
+        def wants(axis: int) -> bool:
+            return need_space if axis < num_space else need_time
+
+        for group_index, first in enumerate(range(0, layout.num_planes, layout.group)):
+            planes = range(first, first + layout.group)
+            grad_product = grad_out[:, group_index * channels : (group_index + 1) * channels].contiguous()
+            samples = [cells.sample(table, plane) for plane in planes]
+            for plane, grad_sample in zip(planes, _product_grads(grad_product, samples)):
+                if need_table:
+                    _add_table_grad(grad_table, grad_sample, cells, plane)
+                if grad_coords is not None:
+                    _add_coordinate_grads(grad_coords, grad_sample, table, cells, plane, wants)
+
+        grad_space = grad_coords[:num_space].t() if need_space else None
+        grad_time = grad_coords[num_space:].t() if need_time else None
+        return grad_table, grad_space, grad_time, None
+
+
+def _product_grads(grad_product: Tensor, samples: Sequence[Tensor]) -> list[Tensor]:
+    """d(sum grad * prod_k s_k) / d s_k = grad * prod_{j != k} s_j, via prefix and suffix products
+    (no division, so zeros are exact)."""
+    count = len(samples)
+    suffixes: list[Tensor | None] = [None] * count
+    running: Tensor | None = None
+    for k in range(count - 1, 0, -1):
+        running = samples[k] if running is None else running * samples[k]
+        suffixes[k - 1] = running
+    grads = []
+    prefix = grad_product
+    for k in range(count):
+        grads.append(prefix if suffixes[k] is None else prefix * suffixes[k])
+        if k < count - 1:
+            prefix = prefix * samples[k]
+    return grads
+
+
+def _add_coordinate_grads(
+    grad_coords: Tensor, grad_sample: Tensor, table: Tensor, cells: _PlaneCells, plane: int, wants
+) -> None:
+    """grad_coords[axis] += d(sample) / d(coordinate) . grad_sample for the plane's two axes.
+
+    d sample / d fu is the sample taken with the weights' derivative (-gv, gv, -fv, fv) (and
+    (-gu, -fu, gu, fu) for fv); the chain rule adds (size - 1) / 2, and 0 where clamped.
+    """
+    layout = cells.layout
+    corners = cells.corners(plane)
+    for own, other, axis, size, along_u in (
+        (cells.u[plane], cells.v[plane], layout.u_axis[plane], layout.width[plane], True),
+        (cells.v[plane], cells.u[plane], layout.v_axis[plane], layout.height[plane], False),
+    ):
+        if not wants(axis):
+            continue
+        g, f = 1.0 - other.frac, other.frac
+        d_weights = torch.stack((-g, g, -f, f) if along_u else (-g, -f, g, f), 1)
+        derivative = F.embedding_bag(corners, table, per_sample_weights=d_weights, mode="sum")
+        grad_frac = torch.linalg.vecdot(derivative, grad_sample)
+        grad_coords[axis] += grad_frac * (0.5 * (size - 1)) * own.inside
+
+
+def _add_table_grad(grad_table: Tensor, grad_sample: Tensor, cells: _PlaneCells, plane: int) -> None:
+    """grad_table[corner_c(n)] += weight_c(n) * grad_sample[n], summed over points n and corners c.
+
+    Points are ordered by top-left cell once; every corner is then one bag-per-cell
+    ``embedding_bag`` over the sample gradients in that order, added at the corner's row offset.
+    """
+    layout = cells.layout
+    start, cell_count = layout.offset[plane], layout.width[plane] * layout.height[plane]
+    base = cells.base(plane) - start
+    order = torch.argsort(base)
+    counts = torch.bincount(base, minlength=cell_count)
+    offsets = torch.cumsum(counts, 0) - counts
+    sorted_weights = cells.weights(plane).index_select(0, order).t().contiguous()
+    region = grad_table[start : start + cell_count]
+    for corner, shift in enumerate(layout.shifts[plane]):
+        per_cell = F.embedding_bag(order, grad_sample, offsets, per_sample_weights=sorted_weights[corner], mode="sum")
+        region[shift:] += per_cell[: cell_count - shift]
+
+
+def plane_product_lookup(table: Tensor, layout: PlaneLayout, space: Tensor, time: Tensor | None = None) -> Tensor:
+    """[N, (P / group) * C] products of bilinear plane samples (see the module docstring).
+
+    Args:
+        table: [sum(H*W), C] from ``planes_to_table``.
+        layout: the planes' ``PlaneLayout``.
+        space: [N, S] coordinates in [-1, 1] (axes 0..S-1).
+        time: [N, T] further coordinates (axes S..S+T-1), kept apart so that their gradient is
+            computed only when they require one.
+    """
+    if time is None:
+        time = space.new_zeros(space.shape[0], 0)
+    if space.shape[0] == 0:
+        return space.new_zeros(0, (layout.num_planes // layout.group) * table.shape[1])
+    return _PlaneProductLookup.apply(table, space, time.to(space.dtype), layout)

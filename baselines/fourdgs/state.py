@@ -1,0 +1,132 @@
+"""Per-Gaussian state passed between the model, the deformation module and the renderer.
+
+Values are stored pre-activation, exactly as 4DGS stores them (log-scales, opacity logits,
+unnormalised w,x,y,z quaternions, SH coefficients with the DC term first), so a state built
+from a 4DGS checkpoint needs no conversion. The activated views the rasterizer wants are
+properties computed on access.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+_FIELDS = ("means", "log_scales", "rotations", "opacity_logits", "shs")
+
+
+@dataclass(frozen=True)
+class GaussianState:
+    """N Gaussians, pre-activation.
+
+    Attributes:
+        means: [N, 3] centres.
+        log_scales: [N, 3] log of the per-axis standard deviations.
+        rotations: [N, 4] unnormalised quaternions, w first.
+        opacity_logits: [N, 1] inverse-sigmoid opacities.
+        shs: [N, K, 3] SH coefficients, K = (degree + 1)^2, DC first.
+    """
+
+    means: Tensor
+    log_scales: Tensor
+    rotations: Tensor
+    opacity_logits: Tensor
+    shs: Tensor
+
+    # ----------------------------------------------------------------------------------------
+    # Activated views (what the rasterizer consumes).
+    @property
+    def scales(self) -> Tensor:
+        """[N, 3] standard deviations (exp of the stored log-scales)."""
+        return torch.exp(self.log_scales)
+
+    @property
+    def quats(self) -> Tensor:
+        """[N, 4] unit quaternions (w, x, y, z)."""
+        return F.normalize(self.rotations, dim=-1)
+
+    @property
+    def opacities(self) -> Tensor:
+        """[N] opacities in (0, 1)."""
+        return torch.sigmoid(self.opacity_logits).squeeze(-1)
+
+    # ----------------------------------------------------------------------------------------
+    @property
+    def num_gaussians(self) -> int:
+        return self.means.shape[0]
+
+    def __len__(self) -> int:
+        return self.num_gaussians
+
+    @property
+    def sh_degree(self) -> int:
+        """Largest SH degree the stored coefficients can represent."""
+        return int(round(self.shs.shape[1] ** 0.5)) - 1
+
+    @property
+    def device(self) -> torch.device:
+        return self.means.device
+
+    def validate(self) -> GaussianState:
+        """Raise ``ValueError`` naming the first field whose shape breaks the contract."""
+        n = self.means.shape[0] if self.means.dim() > 0 else -1
+        expected = {
+            "means": (n, 3),
+            "log_scales": (n, 3),
+            "rotations": (n, 4),
+            "opacity_logits": (n, 1),
+        }
+        for name, shape in expected.items():
+            value = getattr(self, name)
+            if not isinstance(value, Tensor) or tuple(value.shape) != shape:
+                got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
+                raise ValueError(f"GaussianState.{name}: expected shape {list(shape)}, got {got}")
+        shs = self.shs
+        if not isinstance(shs, Tensor) or shs.dim() != 3 or shs.shape[0] != n or shs.shape[2] != 3:
+            got = tuple(shs.shape) if isinstance(shs, Tensor) else type(shs).__name__
+            raise ValueError(f"GaussianState.shs: expected shape [{n}, K, 3], got {got}")
+        k = shs.shape[1]
+        if int(round(k**0.5)) ** 2 != k:
+            raise ValueError(f"GaussianState.shs: K={k} is not (degree + 1)^2")
+        return self
+
+    # ----------------------------------------------------------------------------------------
+    # Cheap structural helpers.
+    def index(self, selection: Tensor | slice | Sequence[int]) -> GaussianState:
+        """Rows picked by a bool mask [N], an index tensor, a list of indices or a slice.
+
+        Slices return views (no copy); masks and index lists gather.
+        """
+        if isinstance(selection, slice):
+            return GaussianState(*(getattr(self, f)[selection] for f in _FIELDS))
+        if not isinstance(selection, Tensor):
+            selection = torch.as_tensor(selection, dtype=torch.long, device=self.device)
+        if selection.dtype == torch.bool and selection.shape != (self.num_gaussians,):
+            raise ValueError(
+                f"GaussianState.index: bool mask of shape {list(selection.shape)} for "
+                f"{self.num_gaussians} Gaussians"
+            )
+        return GaussianState(*(getattr(self, f)[selection] for f in _FIELDS))
+
+    @staticmethod
+    def cat(states: Sequence[GaussianState]) -> GaussianState:
+        """Concatenate along the Gaussian axis (returns the single input unchanged)."""
+        if len(states) == 0:
+            raise ValueError("GaussianState.cat: no states given")
+        if len(states) == 1:
+            return states[0]
+        return GaussianState(*(torch.cat([getattr(s, f) for s in states], 0) for f in _FIELDS))
+
+    def replace(self, **changes: Tensor) -> GaussianState:
+        """A copy with some fields replaced (the others are shared, not copied)."""
+        return dataclasses.replace(self, **changes)
+
+    def detach(self) -> GaussianState:
+        return GaussianState(*(getattr(self, f).detach() for f in _FIELDS))
+
+    def to(self, *args, **kwargs) -> GaussianState:
+        return GaussianState(*(getattr(self, f).to(*args, **kwargs) for f in _FIELDS))
