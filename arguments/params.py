@@ -86,8 +86,8 @@ class ModelParams:
     render_process: bool = param(False, "4DGS: save progress renders while training",
                                  compat=True)
     add_points: bool = param(False, "add 100k random points inside the initial point cloud's "
-                                    "bounding box")
-    extension: str = param(".png", "image file extension of Blender/D-NeRF datasets")
+                                    "bounding box", compat=True)
+    extension: str = param(".png", "image file extension of Blender/D-NeRF datasets", compat=True)
     llffhold: int = param(8, "every llffhold-th frame is a test view (LLFF-style readers)",
                           check=_check_positive)
     # --- ours ---
@@ -105,7 +105,7 @@ class PipelineParams:
     compute_cov3D_python: bool = param(False, "4DGS: build 3D covariances in Python (always done "
                                               "in torch here)", compat=True)
     debug: bool = param(False, "extra checks in the rasterizer (4DGS: CUDA rasterizer debug "
-                               "mode); --debug_from turns it on from an iteration")
+                               "mode); --debug_from turns it on from an iteration", compat=True)
     # --- ours ---
     backend: str = param("auto", "rasterizer backend: auto (gsplat on CUDA, else cpu), cpu, "
                                  "reference (dense test oracle) or gsplat", ours=True,
@@ -168,7 +168,7 @@ class OptimizationParams:
 
     dataloader: bool = param(False, "4DGS: load views through a torch DataLoader", compat=True)
     zerostamp_init: bool = param(False, "coarse stage uses only the views at time 0 (4DGS, for "
-                                        "multi-view video)")
+                                        "multi-view video)", compat=True)
     custom_sampler: str | None = param(None, "4DGS: custom DataLoader sampler", compat=True)
     iterations: int = param(30_000, "iterations of the fine stage", check=_check_non_negative)
     coarse_iterations: int = param(3000, "iterations of the coarse (static) stage",
@@ -218,9 +218,14 @@ class OptimizationParams:
     opacity_threshold_fine_init: float = param(0.005, "same, fine stage, at its start")
     opacity_threshold_fine_after: float = param(0.005, "same, fine stage, at densify_until_iter")
     batch_size: int = param(1, "views per iteration", check=_check_positive)
-    add_point: bool = param(False, "grow points during densification (4DGS's gaussians.grow)")
+    add_point: bool = param(False, "grow points during densification (4DGS's gaussians.grow)", compat=True)
     # --- ours ---
     seed: int = param(0, "random seed (torch, numpy, python)", ours=True)
+    densify_max_gaussians: int = param(360_000, "no densification above this many Gaussians "
+                                       "(4DGS hard-codes 360000)", ours=True, check=_check_positive)
+    prune_min_gaussians: int = param(200_000, "opacity pruning runs only above this many "
+                                     "Gaussians (4DGS hard-codes 200000; small CPU scenes want 0)",
+                                     ours=True, check=_check_non_negative)
 
 
 @dataclass
@@ -229,7 +234,7 @@ class RunParams:
 
     ip: str = param("127.0.0.1", "4DGS: network GUI address (no GUI here)", compat=True)
     port: int = param(6009, "4DGS: network GUI port (no GUI here)", compat=True)
-    debug_from: int = param(-1, "iteration from which pipeline debug checks are on (-1: never)")
+    debug_from: int = param(-1, "iteration from which pipeline debug checks are on (-1: never)", compat=True)
     detect_anomaly: bool = param(False, "torch.autograd anomaly detection")
     test_iterations: list[int] = param([3000, 7000, 14000], "iterations at which test views "
                                                             "are evaluated")

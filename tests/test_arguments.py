@@ -36,7 +36,8 @@ FOURDGS_FIELDS = {
                         "add_point",
 }
 OURS = {ModelParams: {"dataset_type"}, PipelineParams: {"backend", "device"},
-        OptimizationParams: {"seed"}, ModelHiddenParams: set()}
+        OptimizationParams: {"seed", "densify_max_gaussians", "prune_min_gaussians"},
+        ModelHiddenParams: set()}
 
 
 @pytest.mark.parametrize("cls", list(FOURDGS_FIELDS), ids=lambda c: c.__name__)

@@ -17,9 +17,8 @@ from tests.example_plugin import CountingDeformation, ToyPairPlugin
 # Short schedules on the 32x32 scene; densification inside the window so resume covers it.
 FAST = [
     "--quiet", "--test_iterations", "[]", "--save_iterations", "[]", "--log_every", "5",
-    "--densify_from_iter", "10", "--densification_interval", "20", "--pruning_from_iter", "10",
-    "--pruning_interval", "20", "--densify_grad_threshold_coarse", "0.0001",
-    "--densify_grad_threshold_fine_init", "0.0001", "--densify_grad_threshold_after", "0.0001",
+    "--densify_from_iter", "10", "--densification_interval", "15", "--pruning_from_iter", "10",
+    "--pruning_interval", "15", "--prune_min_gaussians", "0",
 ]
 
 

@@ -227,6 +227,7 @@ class Trainer:
         ctx.densify_record = densification_step(
             ctx.model, self.opt, ctx.iteration, ctx.stage, self.cameras_extent, visible, radii.float(),
             torch.stack(grads).sum(dim=0), cam.width, cam.height,
+            max_gaussians=self.opt.densify_max_gaussians, prune_min_gaussians=self.opt.prune_min_gaussians,
         )
         record = ctx.densify_record
         if record.densify_ran or record.prune_ran or record.opacity_reset:
