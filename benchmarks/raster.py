@@ -1,24 +1,40 @@
-"""Rasterizer speed: forward and forward+backward median milliseconds per implementation.
+"""Rasterizer speed: forward and forward+backward per implementation, printed as a markdown table.
 
-    python benchmarks/raster.py [--threads 2] [--repeats 5] [--sizes 2000x128x128,20000x256x256]
+    python benchmarks/raster.py                                     # default sizes, 1 and 2 threads
+    python benchmarks/raster.py --threads 1 2 --repeats 5
+    python benchmarks/raster.py --sizes 20000x256x256 --threads 2 --only kernel,torch_tiled
 
-Scenes look like a trained model seen from a training camera: Gaussians spread over the view
-frustum at depths 2..8, each a few pixels on screen (screen-space standard deviation
-log-uniform in [0.5, 3] px, anisotropic, random rotation), opacities uniform in [0.05, 0.95],
-RGB features. "forward" is the training forward (inputs require grad); "fwd+bwd" adds the
-backward of a weighted sum of image, depth and alpha. Every implementation renders the same
-scene; the speed-up column is reference time / implementation time from the same run.
+Every implementation renders the same scene through the whole pipeline a training step pays for:
+torch projection, compositing of the features plus the depth channel, and (fwd+bwd) the backward
+of a fixed random weighting of image, depth and alpha down to means, quats, scales, opacities and
+features. "forward" is the training forward (inputs require grad). Implementations:
 
-To benchmark a new implementation, add one entry to IMPLEMENTATIONS.
+- reference: rasterize(backend="reference"), the dense oracle; skipped where pixels x Gaussians
+  exceeds --reference-max-pairs (it would take minutes and gigabytes);
+- torch_tiled: the cpu backend's torch path (composite_tiled);
+- kernel: the cpu backend's compiled C++ compositor (composite_kernel);
+- cpu: the public rasterize(backend="cpu") (the kernel when it builds, validation included);
+- gsplat: rasterize(backend="gsplat") on CUDA, where gsplat and a GPU are present.
+
+Figures are medians over --repeats runs after one warm-up run. The runs of all implementations
+are interleaved (one of each in turn), so a change of machine load affects all alike and the
+speed-up ratios, taken within one run of this script, stay meaningful on a shared machine.
+"CPU ms" is the process CPU time of all threads per call: less sensitive than wall time to
+other jobs, but it also counts threads spinning while they wait (OpenMP does so by default:
+set OMP_WAIT_POLICY=PASSIVE where other jobs share the cores). The load average is printed at
+the start and the end.
 """
 from __future__ import annotations
 
 import argparse
 import math
+import os
+import platform
 import statistics
 import sys
+import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -26,14 +42,14 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from baselines.render import rasterize  # noqa: E402
+from baselines.render import kernel, rasterize  # noqa: E402
 from baselines.render.api import _composite  # noqa: E402
 from baselines.render.backends import Backend, gsplat_unavailable_reason  # noqa: E402
 from baselines.render.composite_tiled import composite_tiled  # noqa: E402
 from baselines.render.projection import project_gaussians_torch  # noqa: E402
 
 DEFAULT_SIZES = "2000x128x128,20000x256x256,100000x512x512"
-REFERENCE_MAX_PAIRS = 5e7  # pixel x Gaussian pairs beyond which the dense reference takes minutes
+PARAMS = ("means", "quats", "scales", "opacities", "features")
 
 
 @dataclass
@@ -48,12 +64,25 @@ class Scene:
     width: int
     height: int
 
-    def to(self, device: str) -> "Scene":
-        return Scene(*(getattr(self, f).to(device) for f in ("means", "quats", "scales", "opacities", "features",
-                                                             "viewmat", "K")), self.width, self.height)
+    @property
+    def pairs(self) -> int:
+        """Pixel x Gaussian pairs: the dense reference's work."""
+        return self.means.shape[0] * self.width * self.height
+
+    def leaves(self, device: str) -> "Scene":
+        """A copy on `device` whose Gaussian parameters are fresh leaves requiring grad."""
+        fresh = {k: getattr(self, k).detach().to(device).requires_grad_(True) for k in PARAMS}
+        return Scene(viewmat=self.viewmat.to(device), K=self.K.to(device), width=self.width, height=self.height,
+                     **fresh)
 
 
 def make_scene(n: int, width: int, height: int, seed: int = 0) -> Scene:
+    """N Gaussians as a trained model shows them to a training camera.
+
+    Spread over the view frustum (10% beyond each border) at depths 2..8, screen-space standard
+    deviation log-uniform in [0.5, 3] px, anisotropic, randomly rotated, opacities uniform in
+    [0.05, 0.95], RGB features.
+    """
     g = torch.Generator().manual_seed(seed)
     f = float(width)
     K = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
@@ -68,41 +97,73 @@ def make_scene(n: int, width: int, height: int, seed: int = 0) -> Scene:
                  torch.eye(4), K, width, height)
 
 
+Render = Callable[[Scene, int], "tuple[torch.Tensor, ...]"]  # (scene, threads) -> (image, depth, alpha)
+
+
 @dataclass
 class Implementation:
-    """One row group of the table: how to render a scene, and whether it can run here."""
+    """One row per scene and thread count: how to render, and whether it can run here."""
 
     name: str
-    render: Callable[[Scene], tuple[torch.Tensor, ...]]  # -> (image, depth, alpha)
+    render: Render
     device: str = "cpu"
     unavailable: Callable[[], str | None] = lambda: None
-    max_pairs: float = math.inf  # skip scenes with more pixel x Gaussian pairs (would take minutes)
+    max_pairs: float = math.inf
 
 
 def from_backend(name: str, backend: str, device: str = "cpu", **kwargs) -> Implementation:
-    def render(s: Scene):
+    def render(s: Scene, threads: int):
         return rasterize(s.means, s.quats, s.scales, s.opacities, s.features, s.viewmat, s.K, s.width, s.height,
                          backend=backend)[:3]
     return Implementation(name, render, device, **kwargs)
 
 
-def from_compositor(name: str, compositor, **kwargs) -> Implementation:
-    """A compositing function with the backend signature, after the shared torch projection."""
-    stage = Backend(name, project_gaussians_torch, compositor)
-
-    def render(s: Scene):
+def from_compositor(name: str, make_compositor: Callable[[int], Callable], **kwargs) -> Implementation:
+    """Torch projection + one compositing function, assembled as the public API does."""
+    def render(s: Scene, threads: int):
+        stage = Backend(name, project_gaussians_torch, make_compositor(threads))
         proj = project_gaussians_torch(s.means, s.quats, s.scales, s.viewmat, s.K, s.width, s.height, s.opacities)
         return _composite(stage, proj, s.opacities, s.features, s.width, s.height, None)
     return Implementation(name, render, **kwargs)
 
 
-IMPLEMENTATIONS: list[Implementation] = [
-    from_backend("reference", "reference", max_pairs=REFERENCE_MAX_PAIRS),
-    from_backend("cpu", "cpu"),
-    from_compositor("torch_tiled", composite_tiled),
-    from_backend("gsplat", "gsplat", device="cuda",
-                 unavailable=lambda: gsplat_unavailable_reason(torch.device("cuda"))),
-]
+def _kernel_compositor(threads: int):
+    def composite(projection, opacities, features, width, height):
+        return kernel.composite_kernel(projection, opacities, features, width, height, num_threads=threads)
+    return composite
+
+
+def _kernel_unavailable() -> str | None:
+    ok, reason = kernel.kernel_available()
+    return None if ok else reason
+
+
+def implementations(reference_max_pairs: float) -> list[Implementation]:
+    return [
+        from_backend("reference", "reference", max_pairs=reference_max_pairs),
+        from_compositor("torch_tiled", lambda threads: composite_tiled),
+        from_compositor("kernel", _kernel_compositor, unavailable=_kernel_unavailable),
+        from_backend("cpu", "cpu"),
+        from_backend("gsplat", "gsplat", device="cuda",
+                     unavailable=lambda: gsplat_unavailable_reason(torch.device("cuda"))),
+    ]
+
+
+# Speed-up columns: (row, baseline) pairs, both measured in the same run.
+RATIOS = {"kernel": "torch_tiled", "cpu": "reference"}
+
+
+@dataclass
+class Timings:
+    """Per-call samples in seconds (wall and process CPU time), forward and forward+backward."""
+
+    fwd: list[float] = field(default_factory=list)
+    both: list[float] = field(default_factory=list)
+    fwd_cpu: list[float] = field(default_factory=list)
+    both_cpu: list[float] = field(default_factory=list)
+
+    def medians_ms(self) -> tuple[float, float, float, float]:
+        return tuple(1e3 * statistics.median(v) for v in (self.fwd, self.both, self.fwd_cpu, self.both_cpu))
 
 
 def _sync(device: str) -> None:
@@ -110,68 +171,139 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def time_implementation(impl: Implementation, scene: Scene, repeats: int) -> tuple[float, float]:
-    """Median (forward ms, forward+backward ms) after one warm-up run."""
-    scene = scene.to(impl.device)
-    leaves = [scene.means, scene.quats, scene.scales, scene.opacities, scene.features]
-    weights = None
-    fwd, both = [], []
-    for run in range(repeats + 1):
-        for t in leaves:
-            t.requires_grad_(True)
-            t.grad = None
-        _sync(impl.device)
-        start = time.perf_counter()
-        outputs = impl.render(scene)
-        _sync(impl.device)
-        middle = time.perf_counter()
-        if weights is None:
-            g = torch.Generator().manual_seed(1)
-            weights = [torch.randn(o.shape, generator=g).to(impl.device) for o in outputs]
-        sum((o * w).sum() for o, w in zip(outputs, weights)).backward()
-        _sync(impl.device)
-        end = time.perf_counter()
-        if run:  # the first run warms caches and lazy initialisation
-            fwd.append(middle - start)
-            both.append(end - start)
-    return 1e3 * statistics.median(fwd), 1e3 * statistics.median(both)
+def time_one_call(impl: Implementation, scene: Scene, threads: int, weights: dict, timings: Timings | None) -> None:
+    """Forward and backward of one call; appends to `timings` (None: warm-up, not recorded)."""
+    s = scene.leaves(impl.device)
+    _sync(impl.device)
+    wall0, cpu0 = time.perf_counter(), time.process_time()
+    outputs = impl.render(s, threads)
+    _sync(impl.device)
+    wall1, cpu1 = time.perf_counter(), time.process_time()
+    if impl.name not in weights:
+        g = torch.Generator().manual_seed(1)
+        weights[impl.name] = [torch.randn(o.shape, generator=g).to(o) for o in outputs]
+    sum((o * w).sum() for o, w in zip(outputs, weights[impl.name])).backward()
+    _sync(impl.device)
+    wall2, cpu2 = time.perf_counter(), time.process_time()
+    if timings is not None:
+        timings.fwd.append(wall1 - wall0)
+        timings.both.append(wall2 - wall0)
+        timings.fwd_cpu.append(cpu1 - cpu0)
+        timings.both_cpu.append(cpu2 - cpu0)
+
+
+def benchmark_cell(impls: list[Implementation], scene: Scene, threads: int, repeats: int) -> dict[str, Timings]:
+    """Interleaved runs (one warm-up, then `repeats` rounds of one call per implementation)."""
+    torch.set_num_threads(threads)
+    weights: dict = {}
+    timings = {impl.name: Timings() for impl in impls}
+    for round_index in range(repeats + 1):
+        for impl in impls:
+            time_one_call(impl, scene, threads, weights, timings[impl.name] if round_index else None)
+    return timings
+
+
+def time_cold_build() -> float:
+    """Seconds to compile the kernel into an empty temporary cache (nan without a compiler)."""
+    compiler = kernel.find_compiler()
+    if compiler is None:
+        return float("nan")
+    old = os.environ.get(kernel.ENV_CACHE_DIR)
+    with tempfile.TemporaryDirectory() as tmp:
+        os.environ[kernel.ENV_CACHE_DIR] = tmp
+        try:
+            target = kernel.library_path(compiler)
+            start = time.perf_counter()
+            kernel._build(compiler, target)
+            return time.perf_counter() - start
+        finally:
+            if old is None:
+                del os.environ[kernel.ENV_CACHE_DIR]
+            else:
+                os.environ[kernel.ENV_CACHE_DIR] = old
+
+
+def _cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _load() -> str:
+    return "/".join(f"{v:.2f}" for v in os.getloadavg()) + " (1/5/15 min)"
+
+
+def _label(scene: Scene) -> str:
+    n = scene.means.shape[0]
+    return f"{n // 1000}k, {scene.width}x{scene.height}" if n >= 1000 and n % 1000 == 0 else \
+        f"{n}, {scene.width}x{scene.height}"
+
+
+def _speedup(medians: dict, skipped: dict, name: str) -> str:
+    baseline = RATIOS.get(name)
+    if baseline is None:
+        return ""
+    if baseline not in medians:
+        return f"n/a ({baseline} {'skipped' if baseline in skipped else 'not run'})"
+    (bf, bb), (f, b) = medians[baseline][:2], medians[name][:2]
+    return f"{bf / f:.1f}x / {bb / b:.1f}x vs {baseline}"
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch intra-op threads")
-    parser.add_argument("--repeats", type=int, default=5, help="timed runs per cell (median reported)")
-    parser.add_argument("--sizes", default=DEFAULT_SIZES, help="comma-separated NxWxH scenes")
+    parser.add_argument("--sizes", default=DEFAULT_SIZES, help="comma-separated NxWIDTHxHEIGHT scenes")
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="thread counts, all in this run")
+    parser.add_argument("--repeats", type=int, default=5, help="timed calls per cell (median reported)")
+    parser.add_argument("--reference-max-pairs", type=float, default=5e7,
+                        help="skip the dense reference beyond this many pixel x Gaussian pairs")
     parser.add_argument("--only", default="", help="comma-separated implementation names (default: all)")
+    parser.add_argument("--compile", action="store_true", help="also time a cold build of the kernel")
     args = parser.parse_args(argv)
-    torch.set_num_threads(args.threads)
+    if args.repeats < 1 or min(args.threads) < 1:
+        parser.error("--repeats and --threads must be >= 1")
     wanted = {name for name in args.only.split(",") if name}
-    impls = [i for i in IMPLEMENTATIONS if not wanted or i.name in wanted]
+    impls = [i for i in implementations(args.reference_max_pairs) if not wanted or i.name in wanted]
 
-    print(f"torch {torch.__version__}, {args.threads} thread(s), median of {args.repeats} runs\n")
-    print("| scene | implementation | forward ms | fwd+bwd ms | speed-up vs reference (fwd / fwd+bwd) |")
-    print("|---|---|---:|---:|---|")
+    ok, where = kernel.kernel_available()
+    print(f"machine: {_cpu_name()}, {os.cpu_count()} cores; torch {torch.__version__}; "
+          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', '(unset)')}")
+    print(f"kernel: {where if ok else 'unavailable: ' + where}")
+    if args.compile:
+        print(f"cold kernel build: {time_cold_build():.2f} s")
+    print(f"load average at start: {_load()}")
+    print(f"median of {args.repeats} interleaved calls after one warm-up; ms per call; "
+          "speed-up = baseline time / this time (forward / fwd+bwd), same run; the reference is skipped "
+          f"beyond {args.reference_max_pairs:.0e} pixel x Gaussian pairs\n")
+    print("| scene (N, image) | threads | implementation | forward ms | fwd+bwd ms | forward CPU ms "
+          "| fwd+bwd CPU ms | speed-up (fwd / fwd+bwd) |")
+    print("|---|---:|---|---:|---:|---:|---:|---|")
     for size in args.sizes.split(","):
         n, w, h = (int(v) for v in size.lower().split("x"))
         scene = make_scene(n, w, h)
-        label = f"{n // 1000}k, {w}x{h}" if n >= 1000 else f"{n}, {w}x{h}"
-        reference_ms = None
+        runnable, skipped = [], {}
         for impl in impls:
             reason = impl.unavailable()
-            if reason is None and n * w * h > impl.max_pairs:
-                reason = f"skipped: {n * w * h:.1e} pixel x Gaussian pairs would take minutes"
-            if reason is not None:
-                print(f"| {label} | {impl.name} | - | - | {reason} |")
-                continue
-            f_ms, b_ms = time_implementation(impl, scene, args.repeats)
-            if impl.name == "reference":
-                reference_ms = (f_ms, b_ms)
-                ratio = "1.0 / 1.0"
-            elif reference_ms is None:
-                ratio = "n/a (no reference in this run)"
+            if reason is None and scene.pairs > impl.max_pairs:
+                reason = f"skipped: {scene.pairs:.1e} pairs"
+            if reason is None:
+                runnable.append(impl)
             else:
-                ratio = f"{reference_ms[0] / f_ms:.1f} / {reference_ms[1] / b_ms:.1f}"
-            print(f"| {label} | {impl.name} | {f_ms:.1f} | {b_ms:.1f} | {ratio} |", flush=True)
+                skipped[impl.name] = reason
+        for threads in args.threads:
+            timings = benchmark_cell(runnable, scene, threads, args.repeats)
+            medians = {name: t.medians_ms() for name, t in timings.items()}
+            for impl in impls:
+                if impl.name in skipped:
+                    print(f"| {_label(scene)} | {threads} | {impl.name} | - | - | - | - | {skipped[impl.name]} |")
+                    continue
+                f_ms, b_ms, fc_ms, bc_ms = medians[impl.name]
+                print(f"| {_label(scene)} | {threads} | {impl.name} | {f_ms:.1f} | {b_ms:.1f} | {fc_ms:.1f} | "
+                      f"{bc_ms:.1f} | {_speedup(medians, skipped, impl.name)} |", flush=True)
+    print(f"\nload average at end: {_load()}")
 
 
 if __name__ == "__main__":

@@ -1,15 +1,18 @@
 """Shared scene builders, hard cases and the compositor registry for the rasterizer tests.
 
-`CPU_COMPOSITORS` maps a name to a compositing function with the backend signature
-`(projection, opacities [N], features [N, C], width, height) -> (image [H,W,C], alpha [H,W,1])`.
-Every backend-equality and hard-case test is parametrized over it, so a new CPU implementation
-(the compiled kernel) is tested by adding one entry.
+`CPU_COMPOSITORS` lists (as pytest params) the compositing functions of the cpu backend, with the
+backend signature `(projection, opacities [N], features [N, C], width, height) -> (image [H,W,C],
+alpha [H,W,1])`: the torch tiled path and the compiled kernel (skipped, with the reason, where the
+kernel cannot build). Every backend-equality and hard-case test is parametrized over it, so a new
+CPU implementation is tested by adding one entry.
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
+import pytest
 import torch
 from torch import Tensor
 
@@ -17,11 +20,21 @@ from baselines.render.api import _composite
 from baselines.render.backends import Backend
 from baselines.render.composite_reference import composite_reference
 from baselines.render.composite_tiled import composite_tiled
+from baselines.render.kernel import composite_kernel, kernel_available
 from baselines.render.projection import Projection, max_extend_for_opacity, project_gaussians_torch
 
-CPU_COMPOSITORS = {"torch_tiled": composite_tiled}
+
+_KERNEL_OK, _KERNEL_REASON = kernel_available()
+# Skips where the kernel cannot build (no compiler, REFLOW4DGS_CPU_KERNEL=0, ...). A build that
+# fails although a compiler is present is an error, reported by test_raster_kernel.py.
+requires_kernel = pytest.mark.skipif(not _KERNEL_OK, reason=f"compiled CPU kernel unavailable: {_KERNEL_REASON}")
+
+CPU_COMPOSITORS = [pytest.param(composite_tiled, id="torch_tiled"),
+                   pytest.param(composite_kernel, id="kernel", marks=requires_kernel)]
 # The oracle plus every CPU implementation: for tests that every compositor must pass alike.
-ALL_COMPOSITORS = {"reference": composite_reference, **CPU_COMPOSITORS}
+ALL_COMPOSITORS = [pytest.param(composite_reference, id="reference"), *CPU_COMPOSITORS]
+over_cpu_compositors = pytest.mark.parametrize("compositor", CPU_COMPOSITORS)
+over_all_compositors = pytest.mark.parametrize("compositor", ALL_COMPOSITORS)
 
 
 @dataclass
@@ -191,10 +204,90 @@ def hard_cases() -> list[HardCase]:
 
     cases.append(HardCase("empty", camera_space_scene(
         torch.zeros(0, 3), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 3), w, h, focal=f)))
+    cases.extend(_crowded_hard_cases(w, h))
     return cases
 
 
+def _crowded_hard_cases(w: int, h: int) -> list[HardCase]:
+    """Extreme Gaussians among many ordinary ones (so every tile list mixes both)."""
+    g = torch.Generator().manual_seed(5)
+    base = random_scene(60, w, h, seed=1, posed=False)
+    # Depths around the near plane 0.01 (inclusive): behind, at the camera, inside, just past it.
+    z = torch.tensor([-1.0, -0.005, 0.0, 0.008, 0.02, 0.05, 0.3])
+    near_plane_scan = _append(base, means=torch.stack([torch.full_like(z, 0.01), torch.full_like(z, -0.01), z], 1),
+                              scales=torch.full((7, 3), 0.1), opacities=torch.full((7,), 0.8),
+                              features=torch.rand(7, 3, generator=g))
+    # Needles (1e-8) and giants (1e4), isotropic and mixed, randomly rotated.
+    needles_and_giants = _append(
+        random_scene(60, w, h, seed=2, posed=False),
+        means=torch.tensor([[0.0, 0.0, 3.0], [0.1, 0.1, 4.0], [0.0, 0.0, 20.0], [0.0, 0.0, 5.0]]),
+        scales=torch.tensor([[1e-8] * 3, [1e-8, 1e-8, 1.0], [1e4] * 3, [1e4, 1e-8, 1e-8]]),
+        opacities=torch.tensor([0.9, 0.5, 0.02, 0.3]), features=torch.rand(4, 3, generator=g),
+        quats=torch.randn(4, 4, generator=g))
+    # Opacities exactly 0 and 1 alternating: the 0.999 clamp and stops in many pixels at once.
+    zero_and_one = random_scene(80, w, h, seed=3, posed=False, pixel_sigma=(2.0, 4.0))
+    zero_and_one.opacities = (torch.arange(80) % 2 == 0).float()
+    # Every Gaussian in front of the camera but beside the image: nothing to bin although N > 0.
+    beside = random_scene(50, w, h, seed=4, posed=False)
+    beside.means = beside.means + torch.tensor([50.0, 0.0, 0.0])
+    return [
+        HardCase("near_plane_scan", near_plane_scan, "the last 7 Gaussians scan z across the near plane"),
+        HardCase("needles_and_giants", needles_and_giants, "the last 4 Gaussians"),
+        HardCase("opacity_zero_and_one", zero_and_one),
+        HardCase("all_off_screen", beside),
+        HardCase("stack_1000_depth_ties", _stack_with_depth_ties(), "an image smaller than one tile"),
+    ]
+
+
+def _append(scene: Scene, means: Tensor, scales: Tensor, opacities: Tensor, features: Tensor,
+            quats: Tensor | None = None) -> Scene:
+    """`scene` with K more Gaussians (camera-frame means when the scene's camera is the identity)."""
+    if quats is None:
+        quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(means.shape[0], 1)
+    extra = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "features": features}
+    joined = {k: torch.cat([v, extra[k].to(v.dtype)]) for k, v in scene.gaussian_tensors.items()}
+    return Scene(viewmat=scene.viewmat, K=scene.K, width=scene.width, height=scene.height, **joined)
+
+
+def _stack_with_depth_ties(n: int = 1000, seed: int = 4) -> Scene:
+    """n Gaussians around one pixel, a few pixels wide, at depths tied in groups of 4 (early stop)."""
+    g = torch.Generator().manual_seed(seed)
+    width, height, focal = 14, 11, 14.0
+    depth = 2.0 + torch.arange(n, dtype=torch.float32).div(4).floor() * 0.01
+    offset = 0.02 * torch.randn(n, 2, generator=g)
+    means = torch.cat([offset * depth[:, None] / focal, depth[:, None]], dim=1)
+    scales = (0.5 + torch.rand(n, 3, generator=g)) * 5.0 * depth[:, None] / focal
+    return camera_space_scene(means, scales, 0.2 + 0.6 * torch.rand(n, generator=g), torch.rand(n, 3, generator=g),
+                              width, height, focal=focal, quats=torch.randn(n, 4, generator=g))
+
+
 HARD_CASES = {case.name: case for case in hard_cases()}
+
+# Random scenes for the backend-equality tests (random_scene keyword arguments): image sizes not
+# divisible by 16 (partial border tiles), whole tiles only, a single tile; C = 1, 3 and 10; a deep
+# scene of opaque Gaussians where most pixels reach the transmittance stop.
+RANDOM_SCENES = {
+    "120g_45x37_c1": dict(n=120, width=45, height=37, channels=1, seed=0, pixel_sigma=(0.5, 3.0)),
+    "400g_70x50_c3": dict(n=400, width=70, height=50, channels=3, seed=1, pixel_sigma=(0.5, 3.0)),
+    "250g_33x61_c10": dict(n=250, width=33, height=61, channels=10, seed=2, pixel_sigma=(0.5, 3.0)),
+    "deep_500g_40x23_c3": dict(n=500, width=40, height=23, channels=3, seed=3, opacity=(0.5, 0.99),
+                               pixel_sigma=(1.0, 4.0)),
+    "300g_64x48_c3": dict(n=300, width=64, height=48, channels=3, seed=5, pixel_sigma=(0.5, 3.0)),
+    "120g_16x16_c3": dict(n=120, width=16, height=16, channels=3, seed=6, pixel_sigma=(0.5, 3.0)),
+}
+
+
+def named_scene(name: str) -> Scene:
+    """A scene of HARD_CASES or RANDOM_SCENES by name (a fresh copy each call)."""
+    if name in HARD_CASES:
+        return HARD_CASES[name].scene.to(HARD_CASES[name].scene.means.dtype)
+    return random_scene(**RANDOM_SCENES[name])
+
+
+@functools.lru_cache(maxsize=None)
+def reference_grads(name: str) -> dict[str, Tensor]:
+    """composite_grads of the dense reference on a named scene, computed once per session."""
+    return composite_grads(composite_reference, named_scene(name))
 
 
 def project(scene: Scene) -> Projection:
@@ -255,13 +348,30 @@ def composite_grads(compositor, scene: Scene, seed: int = 0) -> dict[str, Tensor
     """Image, alpha and the gradients of a weighted loss through projection + `compositor`.
 
     Returns a dict with "image", "alpha" and the gradients "means", "quats", "scales",
-    "opacities", "features", "means2d".
+    "opacities", "features" (the 3D parameters) and "means2d", "conics" (the compositor's
+    geometric inputs).
     """
     scene = scene.to(scene.means.dtype).requires_grad_()
     proj = project(scene)
     proj.means2d.retain_grad()
+    proj.conics.retain_grad()
     image, alpha = compositor(proj, scene.opacities, scene.features, scene.width, scene.height)
     weighted_loss((image, alpha), seed).backward()
-    out = {"image": image.detach(), "alpha": alpha.detach(), "means2d": proj.means2d.grad}
+    out = {"image": image.detach(), "alpha": alpha.detach(), "means2d": proj.means2d.grad, "conics": proj.conics.grad}
     out.update({k: v.grad for k, v in scene.gaussian_tensors.items()})
     return out
+
+
+VALUE_ATOL = 1e-5  # float32 image and alpha: two summation orders of at most a few hundred terms
+GRAD_KEYS = ("means", "quats", "scales", "opacities", "features", "means2d", "conics")
+
+
+def assert_matches(result: dict[str, Tensor], expected: dict[str, Tensor], value_atol: float = VALUE_ATOL) -> None:
+    """Finite, and image/alpha within value_atol and every gradient within assert_grads_close."""
+    for key in ("image", "alpha") + GRAD_KEYS:
+        assert result[key] is not None, f"no gradient reached {key}"
+        assert torch.isfinite(result[key]).all(), f"{key} is not finite"
+    for key in ("image", "alpha"):
+        torch.testing.assert_close(result[key], expected[key], atol=value_atol, rtol=0, msg=lambda m: f"{key}: {m}")
+    for key in GRAD_KEYS:
+        assert_grads_close(result[key], expected[key], key)

@@ -1,54 +1,62 @@
-"""The cpu backend against the dense reference: values and gradients on random scenes."""
+"""The cpu backend's compositors and the public cpu backend against the dense reference."""
 from __future__ import annotations
+
+import functools
 
 import pytest
 import torch
 
+from baselines.render import composite_tiled as tiled_module
+from baselines.render import kernel as kernel_module
 from baselines.render import rasterize
 from baselines.render.composite_reference import composite_reference
 from baselines.render.composite_tiled import composite_tiled
 from raster_cases import (
-    CPU_COMPOSITORS, HARD_CASES, assert_grads_close, composite_grads, project, random_scene, weighted_loss,
+    CPU_COMPOSITORS, GRAD_KEYS, RANDOM_SCENES, VALUE_ATOL, assert_grads_close, assert_matches, composite_grads,
+    named_scene, over_cpu_compositors, project, random_scene, reference_grads, requires_kernel, weighted_loss,
 )
 
-VALUE_ATOL = 1e-5
-GRAD_KEYS = ("means", "quats", "scales", "opacities", "features", "means2d")
-# Image sizes not divisible by 16 (partial border tiles), C = 1, 3 and 10, plus a deep scene of
-# opaque Gaussians where most pixels reach the transmittance stop.
-SCENES = {
-    "120g_45x37_c1": dict(n=120, width=45, height=37, channels=1, seed=0, pixel_sigma=(0.5, 3.0)),
-    "400g_70x50_c3": dict(n=400, width=70, height=50, channels=3, seed=1, pixel_sigma=(0.5, 3.0)),
-    "250g_33x61_c10": dict(n=250, width=33, height=61, channels=10, seed=2, pixel_sigma=(0.5, 3.0)),
-    "deep_500g_40x23_c3": dict(n=500, width=40, height=23, channels=3, seed=3, opacity=(0.5, 0.99),
-                               pixel_sigma=(1.0, 4.0)),
-}
-_reference_cache: dict[str, dict] = {}
 
-
-def _reference(name: str) -> dict:
-    if name not in _reference_cache:
-        _reference_cache[name] = composite_grads(composite_reference, random_scene(**SCENES[name]))
-    return _reference_cache[name]
-
-
-def _assert_matches(result: dict, expected: dict) -> None:
-    torch.testing.assert_close(result["image"], expected["image"], atol=VALUE_ATOL, rtol=0)
-    torch.testing.assert_close(result["alpha"], expected["alpha"], atol=VALUE_ATOL, rtol=0)
-    for key in GRAD_KEYS:
-        assert_grads_close(result[key], expected[key], key)
-
-
-@pytest.mark.parametrize("compositor", CPU_COMPOSITORS.values(), ids=CPU_COMPOSITORS.keys())
-@pytest.mark.parametrize("scene_name", SCENES.keys())
+@over_cpu_compositors
+@pytest.mark.parametrize("scene_name", RANDOM_SCENES.keys())
 def test_cpu_compositor_matches_reference(compositor, scene_name):
-    expected = _reference(scene_name)
+    expected = reference_grads(scene_name)
     assert expected["alpha"].max() > 0.95  # the scene has opaque regions
-    _assert_matches(composite_grads(compositor, random_scene(**SCENES[scene_name])), expected)
+    assert_matches(composite_grads(compositor, named_scene(scene_name)), expected)
 
 
-def test_public_rasterize_cpu_matches_reference():
+@over_cpu_compositors
+def test_float64_matches_reference_to_rounding(compositor):
+    # Same decisions and float64 arithmetic: only the summation order differs (~1e-16 relative).
+    scene = random_scene(150, 45, 33, channels=3, seed=3, dtype=torch.float64)
+    got = composite_grads(compositor, scene)
+    want = composite_grads(composite_reference, scene)
+    for key, value in want.items():
+        scale = max(1.0, float(value.abs().max())) if value.numel() else 1.0
+        torch.testing.assert_close(got[key], value, rtol=1e-9, atol=1e-12 * scale, msg=lambda m: f"{key}: {m}")
+
+
+def _spy_on_cpu_paths(monkeypatch) -> list[str]:
+    """Record which compositor the cpu backend calls (it looks both up at call time)."""
+    ran: list[str] = []
+    for module, name in ((kernel_module, "composite_kernel"), (tiled_module, "composite_tiled")):
+        def spy(*args, _original=getattr(module, name), _name=name, **kwargs):
+            ran.append(_name)
+            return _original(*args, **kwargs)
+
+        monkeypatch.setattr(module, name, spy)
+    return ran
+
+
+@pytest.mark.parametrize("switch, path", [pytest.param("0", "composite_tiled", id="torch_tiled"),
+                                          pytest.param("1", "composite_kernel", id="kernel", marks=requires_kernel)])
+def test_public_rasterize_cpu_matches_reference(monkeypatch, switch, path):
+    # Both paths of the cpu backend (the kernel, and the torch tiled fallback the environment
+    # switch selects) end to end: background, depth, meta, gradients down to the 3D parameters.
+    monkeypatch.setenv(kernel_module.ENV_SWITCH, switch)
     scene = random_scene(300, 50, 42, channels=4, seed=4)
     background = torch.tensor([0.3, 0.1, 0.9, 0.5])
+    ran = _spy_on_cpu_paths(monkeypatch)
     results = {}
     for backend in ("reference", "cpu"):
         s = scene.to(torch.float32).requires_grad_()
@@ -57,12 +65,16 @@ def test_public_rasterize_cpu_matches_reference():
         weighted_loss((image, depth, alpha), seed=7).backward()
         results[backend] = dict(image=image.detach(), depth=depth.detach(), alpha=alpha.detach(),
                                 means2d=meta.means2d.grad, **{k: v.grad for k, v in s.gaussian_tensors.items()})
+    assert ran == [path]
     ref, cpu = results["reference"], results["cpu"]
     for key in ("image", "alpha"):
         torch.testing.assert_close(cpu[key], ref[key], atol=VALUE_ATOL, rtol=0)
     # Depth = sum(w z) / alpha: relative to the scene depth (z in [2, 8]).
     torch.testing.assert_close(cpu["depth"], ref["depth"], atol=VALUE_ATOL * 8, rtol=1e-5)
     for key in GRAD_KEYS:
+        if key == "conics":
+            continue  # internal to the projection here; covered by the compositor tests
+        assert ref[key].abs().max() > 0, key  # every gradient is exercised (densification reads means2d)
         assert_grads_close(cpu[key], ref[key], key)
 
 
@@ -70,32 +82,24 @@ def test_public_rasterize_cpu_matches_reference():
 def test_torch_tiled_batches_and_segments_match_reference(case_name):
     # Tiny segments and batches force many batches, many segments, the float64 transmittance
     # carry across segments and tiles leaving early (stack_1000 stops after a few dozen entries).
-    scene = HARD_CASES[case_name].scene
-    expected = composite_grads(composite_reference, scene)
-
-    def small_steps(*args):
-        return composite_tiled(*args, max_pairs=256 * 64 * 2, segment=64)
-
-    _assert_matches(composite_grads(small_steps, scene), expected)
+    small_steps = functools.partial(composite_tiled, max_pairs=256 * 64 * 2, segment=64)
+    assert_matches(composite_grads(small_steps, named_scene(case_name)), reference_grads(case_name))
 
 
 def test_torch_tiled_random_scene_with_small_steps():
-    scene = random_scene(**SCENES["400g_70x50_c3"])
-
-    def small_steps(*args):
-        return composite_tiled(*args, max_pairs=256 * 8 * 3, segment=8)
-
-    _assert_matches(composite_grads(small_steps, scene), _reference("400g_70x50_c3"))
+    small_steps = functools.partial(composite_tiled, max_pairs=256 * 8 * 3, segment=8)
+    assert_matches(composite_grads(small_steps, named_scene("400g_70x50_c3")), reference_grads("400g_70x50_c3"))
 
 
-def test_forward_without_grad_matches():
-    scene = random_scene(**SCENES["120g_45x37_c1"]).requires_grad_()
+@over_cpu_compositors
+def test_forward_without_grad_matches(compositor):
+    scene = named_scene("120g_45x37_c1").requires_grad_()
+    expected = reference_grads("120g_45x37_c1")
     with torch.no_grad():
-        proj = project(scene)
-        for compositor in CPU_COMPOSITORS.values():
-            image, alpha = compositor(proj, scene.opacities, scene.features, scene.width, scene.height)
-            torch.testing.assert_close(image, _reference("120g_45x37_c1")["image"], atol=VALUE_ATOL, rtol=0)
-            torch.testing.assert_close(alpha, _reference("120g_45x37_c1")["alpha"], atol=VALUE_ATOL, rtol=0)
+        image, alpha = compositor(project(scene), scene.opacities, scene.features, scene.width, scene.height)
+    assert not image.requires_grad and not alpha.requires_grad
+    torch.testing.assert_close(image, expected["image"], atol=VALUE_ATOL, rtol=0)
+    torch.testing.assert_close(alpha, expected["alpha"], atol=VALUE_ATOL, rtol=0)
 
 
 def _tiny_scene_float64():
@@ -115,15 +119,16 @@ def test_reference_gradcheck_float64():
     assert torch.autograd.gradcheck(render, inputs, eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=True)
 
 
-@pytest.mark.parametrize("segment", [32, 1])
-def test_torch_tiled_backward_gradcheck_float64(segment):
-    # The hand-written backward against finite differences, through the stage inputs.
+@pytest.mark.parametrize("compositor", [
+    *CPU_COMPOSITORS, pytest.param(functools.partial(composite_tiled, segment=1), id="torch_tiled_segment_1")])
+def test_cpu_compositor_backward_gradcheck_float64(compositor):
+    # The hand-written backward passes against finite differences, through the stage inputs.
     scene = _tiny_scene_float64()
     proj = project(scene)
 
     def render(means2d, conics, opacities, features):
         proj.means2d, proj.conics = means2d, conics
-        return composite_tiled(proj, opacities, features, scene.width, scene.height, segment=segment)
+        return compositor(proj, opacities, features, scene.width, scene.height)
 
     inputs = tuple(t.detach().clone().requires_grad_()
                    for t in (proj.means2d, proj.conics, scene.opacities, scene.features))

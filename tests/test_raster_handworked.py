@@ -7,9 +7,8 @@ import pytest
 import torch
 
 from baselines.render import rasterize
-from raster_cases import ALL_COMPOSITORS, camera_space_scene, render_with, screen_projection
+from raster_cases import camera_space_scene, over_all_compositors, render_with, screen_projection
 
-COMPOSITORS = pytest.mark.parametrize("compositor", ALL_COMPOSITORS.values(), ids=ALL_COMPOSITORS.keys())
 IDENTITY_CONIC = [1.0, 0.0, 1.0]  # sigma = (dx^2 + dy^2) / 2
 
 
@@ -48,7 +47,7 @@ def test_single_gaussian_through_the_full_pipeline(backend):
     torch.testing.assert_close(depth[..., 0][covered], torch.full((int(covered.sum()),), 2.0))
 
 
-@COMPOSITORS
+@over_all_compositors
 def test_two_overlapping_gaussians_front_one_dominates(compositor):
     # Both on the centre of pixel (1, 2), identity conics. Index 0 is the BACK one (z = 5,
     # o = 0.8, green), index 1 the front one (z = 2, o = 0.5, red): order must come from depth.
@@ -72,7 +71,18 @@ def test_two_overlapping_gaussians_front_one_dominates(compositor):
     assert alpha[8, 11, 0] == 0.0 and depth[8, 11, 0] == 0.0
 
 
-@COMPOSITORS
+@over_all_compositors
+def test_depth_ties_keep_index_order(compositor):
+    # Two coincident Gaussians at the same depth: the lower index is in front (a stable sort).
+    # At the centre of pixel (1, 2) alpha = 0.9 for both: index 0 gives 0.9 red, index 1 then
+    # 0.1 * 0.9 = 0.09 green; in the other order the colours would swap.
+    proj = screen_projection([[2.5, 1.5], [2.5, 1.5]], [IDENTITY_CONIC] * 2, [3.0, 3.0], [0.9, 0.9], 6, 4)
+    image, alpha = compositor(proj, torch.tensor([0.9, 0.9]), torch.tensor([[1.0, 0.0], [0.0, 1.0]]), 6, 4)
+    torch.testing.assert_close(image[1, 2], torch.tensor([0.9, 0.09]), atol=1e-7, rtol=0)
+    torch.testing.assert_close(alpha[1, 2, 0], torch.tensor(0.99), atol=1e-7, rtol=0)
+
+
+@over_all_compositors
 def test_alpha_is_clamped_at_0_999(compositor):
     # Opacity 1 at the centre of pixel (1, 2): o exp(0) = 1 is clamped to 0.999; one pixel right
     # exp(-0.5) = 0.607 is not clamped.
@@ -84,7 +94,7 @@ def test_alpha_is_clamped_at_0_999(compositor):
     torch.testing.assert_close(alpha[1, 3, 0], torch.tensor(math.exp(-0.5)), atol=1e-7, rtol=0)
 
 
-@COMPOSITORS
+@over_all_compositors
 def test_alphas_below_1_over_255_are_skipped(compositor):
     # o = 0.5, identity conic at (2.5, 1.5): offset (3, 0) gives 0.5 e^-4.5 = 0.00555 >= 1/255,
     # offset (3, 1) gives 0.5 e^-5 = 0.00337 < 1/255 = 0.00392, so exactly 0 there.
@@ -99,7 +109,7 @@ def test_alphas_below_1_over_255_are_skipped(compositor):
     torch.testing.assert_close(alpha[..., 0].double(), expected, atol=1e-7, rtol=0)
 
 
-@COMPOSITORS
+@over_all_compositors
 def test_skipped_gaussian_does_not_dim_the_ones_behind(compositor):
     # A front Gaussian whose alpha at pixel (2, 5) is below 1/255 (see the test above) must leave
     # the transmittance at 1 there: the pixel shows the back Gaussian alone.
@@ -110,7 +120,7 @@ def test_skipped_gaussian_does_not_dim_the_ones_behind(compositor):
     assert torch.equal(image[2, 5], torch.tensor([0.0, 0.7]))
 
 
-@COMPOSITORS
+@over_all_compositors
 @pytest.mark.parametrize("opacity, composited, composited_next", [(0.5, 13, 20), (0.75, 6, 15)])
 def test_transmittance_stop_at_the_hand_computed_index(compositor, opacity, composited, composited_next):
     # 20 Gaussians stacked on the centre of pixel (1, 2), depths 1..20. At the centre every alpha

@@ -1,8 +1,6 @@
 """Projection stage: screen means, depths, 2D covariances and bounding boxes."""
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 import torch
@@ -11,7 +9,7 @@ from scipy.spatial.transform import Rotation
 from baselines.render import project_gaussians
 from baselines.render.projection import ALPHA_THRESHOLD
 from baselines.render.tiles import bin_gaussians
-from raster_cases import camera_space_scene, intrinsics, project, random_scene
+from raster_cases import camera_space_scene, project, random_scene
 
 
 def _world_covariances(quats: torch.Tensor, scales: torch.Tensor) -> np.ndarray:

@@ -54,6 +54,20 @@ def test_wrong_dtype(scene, name):
     _raises(name, **_args(scene, **{name: value.double()}))
 
 
+def test_float16_is_rejected_naming_the_culprit(scene):
+    # float16 overflows in the projection (a near Gaussian's covariance exceeds 65504 px^2);
+    # bfloat16 has float32's range and renders.
+    half = {k: v.half() for k, v in _args(scene).items() if isinstance(v, torch.Tensor)}
+    _raises("means is float16", **_args(scene, **half))
+    proj = project(scene)
+    proj.means2d = proj.means2d.half()
+    _raises("projection.means2d is float16", composite, projection=proj, opacities=scene.opacities.half(),
+            features=scene.features.half(), width=24, height=18)
+    bf16 = {k: v.bfloat16() for k, v in _args(scene).items() if isinstance(v, torch.Tensor)}
+    image, _, alpha, meta = rasterize(**_args(scene, **bf16), backend="cpu")
+    assert image.dtype == torch.bfloat16 and bool(torch.isfinite(image).all()) and meta.visible.any()
+
+
 @pytest.mark.parametrize("name", ["quats", "scales", "opacities", "features", "viewmat", "K"])
 def test_wrong_device(scene, name):
     value = _args(scene)[name]

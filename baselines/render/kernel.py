@@ -26,7 +26,7 @@ path. Without a compiler, or when the build fails, `kernel_available()` returns 
 and the cpu backend falls back likewise, logging the reason once.
 
 Dtypes: float32 and float64 both run compiled (the kernel is templated on the scalar type);
-other dtypes (float16, bfloat16) and non-CPU tensors take the torch tiled path.
+bfloat16 and non-CPU tensors take the torch tiled path (float16 is rejected by validation).
 """
 from __future__ import annotations
 

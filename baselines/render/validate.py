@@ -57,6 +57,16 @@ def _require_same_kind(name: str, value: Tensor, reference: Tensor) -> None:
         raise ValueError(f"{name} is on {value.device} but means is on {reference.device}; use one device")
 
 
+def _require_supported_float(name: str, value: Tensor) -> None:
+    if not value.is_floating_point():
+        raise ValueError(f"{name} must be a floating tensor, got {value.dtype}")
+    if value.dtype == torch.float16:
+        # Screen-space covariances scale with (focal / z)^2: 0.1 in front of a 500 px focal
+        # camera that factor is 2.5e7 px^2 per unit of 3D variance, beyond float16's 65504.
+        raise ValueError(f"{name} is float16, which the rasterizer does not support (screen-space covariances "
+                         "overflow its range, max 65504); use float32, float64 or bfloat16")
+
+
 def _require_finite(name: str, value: Tensor) -> None:
     if value.numel() and not bool(torch.isfinite(value).all()):
         raise ValueError(f"{name} contains NaN or inf")
@@ -72,8 +82,7 @@ def validate_gaussians(
     features are optional (the projection stage needs neither).
     """
     m = _require_tensor("means", means)
-    if not m.is_floating_point():
-        raise ValueError(f"means must be a floating tensor, got {m.dtype}")
+    _require_supported_float("means", m)
     _require_shape("means", m, (None, 3), "[N, 3]")
     n = m.shape[0]
     checks = [
@@ -116,6 +125,7 @@ def validate_composite_inputs(means2d: Tensor, n: int, opacities: object, featur
     opacities [N] in [0, 1] and features [N, C] (C >= 1): tensors of means2d's dtype and device,
     all finite.
     """
+    _require_supported_float("projection.means2d", means2d)
     for name, value, shape, meaning in (("opacities", opacities, (n,), "[N]"), ("features", features, (n, None), "[N, C]")):
         t = _require_tensor(name, value)
         _require_shape(name, t, shape, f"{meaning} with N={n} (the projection's Gaussian count)")
