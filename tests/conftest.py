@@ -1,7 +1,13 @@
 """Shared fixtures: small generated scenes (never committed binaries)."""
 from __future__ import annotations
 
-from pathlib import Path
+import os
+
+# torch's OpenMP threads sleep instead of spinning while they wait: on a busy 2-core machine a
+# spinning pool makes the rasterizer's many small tensor ops 10-50x slower. Must precede torch.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from pathlib import Path  # noqa: E402
 
 import pytest
 

@@ -122,13 +122,20 @@ class HookRunner:
                 result, owner = value, plugin.name
         return result
 
-    def merged(self, hook: str, ctx: TrainContext, *args: Any) -> dict[str, Tensor]:
-        """Dict-valued hooks: union of the plugins' dicts, keys prefixed with the plugin name."""
+    def merged(self, hook: str, ctx: TrainContext, *args: Any, prefix: bool = True) -> dict[str, Tensor]:
+        """Dict-valued hooks: union of the plugins' dicts.
+
+        With `prefix`, keys become "<plugin>/<key>" (loss names in logs); without, keys stay as
+        the plugin wrote them (feature maps a plugin reads back) and a clash is an error.
+        """
         merged: dict[str, Tensor] = {}
         for plugin in self.plugins:
             value = getattr(plugin, hook)(ctx, *args)
             for key, tensor in (value or {}).items():
-                merged[f"{plugin.name}/{key}"] = tensor
+                name = f"{plugin.name}/{key}" if prefix else key
+                if name in merged:
+                    raise PluginError(f"hook {hook!r}: two plugins return the key {name!r}")
+                merged[name] = tensor
         return merged
 
     def state_dict(self) -> dict[str, Any]:

@@ -175,7 +175,7 @@ class Trainer:
             ctx.views = [prepare_view(model, cam, ctx.stage, self.pipe.backend) for cam in ctx.batch]
         with self.timer("rasterize"):
             for k, view in enumerate(ctx.views):
-                extra = self.hooks.merged("extra_features", ctx, k)
+                extra = self.hooks.merged("extra_features", ctx, k, prefix=False)
                 composite_view(view, ctx.background, extra, self.pipe.backend)
 
         with self.timer("loss_backward"):
