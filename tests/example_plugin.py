@@ -95,6 +95,12 @@ class ToyPairPlugin(Plugin):
         flags = (torch.arange(n, device=ctx.model.device) % 2).float().unsqueeze(1)
         ctx.model.register_gaussian_buffer("is_dynamic", flags)
 
+    def on_load(self, ctx, point_cloud_dir) -> None:
+        # A 4DGS folder has no plugin buffers (ours restores them): create what is missing.
+        self.calls["on_load"] += 1
+        if "is_dynamic" not in ctx.model.gaussian_buffers:
+            self.on_model_created(ctx)
+
     def on_stage_start(self, ctx) -> None:
         self.calls[f"stage_start_{ctx.stage}"] += 1
         if ctx.stage == "fine" and self.is_enabled("warmup_freeze"):

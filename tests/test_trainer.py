@@ -151,3 +151,59 @@ def test_cli_reports_bad_inputs_in_one_line(tmp_path):
     proc = subprocess.run([sys.executable, str(REPO_ROOT / "train.py"), "--plugin", "nope"],
                           capture_output=True, text=True, cwd=REPO_ROOT)
     assert proc.returncode == 2 and "unknown plugin 'nope'" in proc.stderr
+
+
+@pytest.fixture(scope="module")
+def trained_run(tiny_scene, tmp_path_factory):
+    """A baseline run (no plugin) with its point_cloud/iteration_20 folder."""
+    out = tmp_path_factory.mktemp("trained") / "run"
+    result = build_trainer(base_argv(tiny_scene, out, 10, 20)).train()
+    return out, result
+
+
+def test_start_from_a_point_cloud_folder_upgrades_into_the_fine_stage(tiny_scene, tmp_path, trained_run, toy_plugin):
+    from baselines.fourdgs.checkpoint import read_gaussian_ply
+
+    out, result = trained_run
+    folder = out / "point_cloud" / f"iteration_{result.final_iteration}"
+    saved = read_gaussian_ply(folder / "point_cloud.ply", 3)
+    argv = base_argv(tiny_scene, tmp_path / "up", 10, 5, "--start_checkpoint", str(folder), "--plugin", "toy_pairs",
+                     "--disable", "custom_init,custom_deformation")
+    trainer = build_trainer(argv)
+    plugin = trainer.hooks.plugins[0]
+    loaded: dict[str, torch.Tensor] = {}
+
+    def on_load_spy(ctx, directory, _orig=plugin.on_load):
+        loaded["xyz"] = ctx.model._xyz.detach().clone()
+        _orig(ctx, directory)
+        loaded["flags"] = ctx.model.gaussian_buffers["is_dynamic"]
+
+    plugin.on_load = on_load_spy
+    stages = []
+    original = trainer._begin_stage
+    trainer._begin_stage = lambda stage, total: (stages.append(stage), original(stage, total))
+    trainer.train()
+    torch.testing.assert_close(loaded["xyz"], saved["xyz"])  # loaded exactly
+    assert loaded["flags"].shape == (saved["xyz"].shape[0], 1)  # the plugin's buffer was created on load
+    assert stages == ["fine"]  # the coarse stage is skipped: a 4DGS output is already trained
+    assert trainer.ctx.iteration == 5
+    # a whole model directory works too (latest iteration)
+    other = build_trainer(base_argv(tiny_scene, tmp_path / "up2", 10, 1, "--start_checkpoint", str(out)))
+    other._resume_point()
+    assert other.ctx.model.num_gaussians == saved["xyz"].shape[0]
+
+
+def test_render_command_writes_4dgs_layout_and_metrics(trained_run):
+    from baselines.fourdgs.app import render_from_argv
+
+    out, result = trained_run
+    written = render_from_argv(["-m", str(out), "--skip_train", "--skip_video"])
+    method = f"ours_{result.final_iteration}"
+    assert written == {"test": out / "test" / method}
+    renders = sorted((out / "test" / method / "renders").glob("*.png"))
+    assert len(renders) == len(list((out / "test" / method / "gt").glob("*.png"))) > 0
+    assert len(list((out / "test" / method / "depth").glob("*.png"))) == len(renders)
+    per_view = json.loads((out / "per_view.json").read_text())[method]
+    assert set(per_view["PSNR"]) == {p.name for p in renders}
+    with pytest.raises(FileNotFoundError, match="iteration_999"):
+        render_from_argv(["-m", str(out), "--iteration", "999"])

@@ -25,7 +25,9 @@ from baselines.data import SceneInfo, initial_point_cloud
 from baselines.metrics import psnr, ssim
 
 from .checkpoint import (
+    find_latest_iteration,
     load_point_cloud_dir,
+    point_cloud_dir,
     load_training_state,
     save_point_cloud_dir,
     save_training_state,
@@ -251,13 +253,8 @@ class Trainer:
         return out
 
     # ------------------------------------------------------------------ persistence
-    def point_cloud_dir(self) -> Path:
-        ctx = self.ctx
-        name = f"iteration_{ctx.iteration}" if ctx.stage == "fine" else f"coarse_iteration_{ctx.iteration}"
-        return ctx.model_path / "point_cloud" / name
-
     def save_point_cloud(self) -> Path:
-        path = self.point_cloud_dir()
+        path = point_cloud_dir(self.ctx.model_path, self.ctx.iteration, self.ctx.stage)
         save_point_cloud_dir(self.ctx.model, path)
         self.hooks.call("on_save", self.ctx, path)
         self.run_log.event("saved", path=str(path))
@@ -276,7 +273,7 @@ class Trainer:
         self.run_log.event("checkpoint", path=str(path))
         return path
 
-    def load_model_from(self, point_cloud_dir: Path) -> None:
+    def load_model_from(self, folder: Path) -> None:
         """Build the model (a plugin may replace it) and load a point_cloud/iteration_N folder.
 
         Used to continue from a 4DGS output (the upgrade path) and by render.py. No initial cloud
@@ -288,11 +285,11 @@ class Trainer:
         model = self.hooks.first("build_model", ctx)
         if model is None:
             model = GaussianModel(self.args.model.sh_degree, self.hidden)
-        load_point_cloud_dir(point_cloud_dir, model, device=self.device)
+        load_point_cloud_dir(folder, model, device=self.device)
         model.spatial_lr_scale = self.cameras_extent
-        ctx.model, ctx.point_cloud_source = model, f"checkpoint {point_cloud_dir}"
-        self.hooks.call("on_load", ctx, point_cloud_dir)
-        self.run_log.event("loaded", path=str(point_cloud_dir), num_gaussians=model.num_gaussians)
+        ctx.model, ctx.point_cloud_source = model, f"checkpoint {folder}"
+        self.hooks.call("on_load", ctx, folder)
+        self.run_log.event("loaded", path=str(folder), num_gaussians=model.num_gaussians)
 
     def _resume_point(self) -> dict[str, Any] | None:
         """Interpret --start_checkpoint: a chkpnt_*.pth (exact resume) or a point_cloud dir (upgrade)."""
@@ -331,11 +328,10 @@ class Trainer:
 
 
 def latest_point_cloud_dir(path: Path) -> Path:
-    """A point_cloud/iteration_N dir itself, or the highest fine iteration under a model dir."""
+    """A point_cloud/iteration_N folder itself, or the highest fine iteration of a model folder."""
     if (path / "point_cloud.ply").is_file():
         return path
-    root = path / "point_cloud" if (path / "point_cloud").is_dir() else path
-    candidates = [p for p in root.glob("iteration_*") if (p / "point_cloud.ply").is_file()]
-    if not candidates:
-        raise FileNotFoundError(f"--start_checkpoint {path}: no point_cloud.ply and no iteration_N directory inside")
-    return max(candidates, key=lambda p: int(p.name.split("_")[-1]))
+    latest = find_latest_iteration(path)
+    if latest is None:
+        raise FileNotFoundError(f"--start_checkpoint {path}: no point_cloud.ply and no point_cloud/iteration_N inside")
+    return point_cloud_dir(path, latest)
