@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """Run a command inside the project's own virtual environment, creating it first if needed.
 
-    python3 scripts/venv.py train.py              # the main job (embedded synthetic scene)
-    python3 scripts/venv.py -m pytest -q          # the test suite
+    python3 scripts/with_venv.py train.py              # the main job (embedded synthetic scene)
+    python3 scripts/with_venv.py -m pytest -q          # the test suite
 
 Everything after the script name is handed to the environment's Python unchanged.
 
