@@ -10,25 +10,8 @@
 #     its HyperNeRF scenes follow it) applied to the 192 frames of the protocol.
 # The scenes are forward-facing, so the default -r -1 keeps DynamicNeRF's 270x480 images.
 
-ModelHiddenParams = dict(
-    kplanes_config=dict(
-        grid_dimensions=2,
-        input_coordinate_dim=4,
-        output_coordinate_dim=16,
-        resolution=[64, 64, 64, 96],
-    ),
-    multires=[1, 2, 4],
-    defor_depth=1,
-    net_width=128,
-    plane_tv_weight=0.0002,
-    time_smoothness_weight=0.001,
-    l1_time_planes=0.0001,
-)
+_base_ = "../hypernerf/default.py"
 
-OptimizationParams = dict(
-    iterations=14_000,
-    batch_size=2,
-    coarse_iterations=3000,
-    densify_until_iter=10_000,
-    opacity_reset_interval=300_000,  # longer than the run: no opacity reset (as HyperNeRF)
+ModelHiddenParams = dict(
+    kplanes_config=dict(resolution=[64, 64, 64, 96]),  # merges into the base's kplanes_config
 )
