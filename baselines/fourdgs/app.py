@@ -23,7 +23,7 @@ from .plugins import Plugin, load_plugin_class, resolve_components
 from .trainer import Trainer, TrainResult
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-EMBEDDED_SCENE = "balloon"
+EMBEDDED_SCENE = "skating"
 EMBEDDED_CONFIG = REPO_ROOT / "arguments" / "synthetic" / "default.py"
 log = logging.getLogger("train")
 
