@@ -10,35 +10,55 @@
 //   a pixel stops BEFORE the Gaussian whose contribution would bring transmittance to <= 1e-4
 //   image = sum_i f_i alpha_i T_i,  alpha_out = 1 - T_final
 //
-// Arithmetic mirrors the oracle so that results agree to float rounding: sigma and alpha are
-// evaluated in the same operation order (the build uses -ffp-contract=off, so no FMA changes the
-// rounding), and transmittance is carried in double and rounded to the scalar type where it is
-// used, which is what torch.cumprod does on the CPU (it accumulates float products in double).
-// The termination test therefore takes the same decision as the oracle's.
+// Arithmetic mirrors the oracle so that every per-pair decision (the 1/255 skip, the 0.999 clamp,
+// the transmittance stop) is taken as the oracle takes it: sigma and alpha are evaluated in the
+// same operation order in the scalar type (the build uses -ffp-contract=off and no FMA, so no
+// fused operation changes the rounding), and transmittance is carried in double and rounded to
+// the scalar type where it is used, which is what torch.cumprod does on the CPU (it accumulates
+// float products in double).
+//
+// exp(): float32 alpha uses a vectorised exp (below, `exp_neg`) that returns exactly what the C
+// library's expf returns: it evaluates exp in double to ~1e-15 and rounds to float, and calls
+// expf itself for the ~1% of lanes whose double result lies within 2^-7 float ulp of a rounding
+// midpoint (the only places where a libm expf with < 0.504 ulp error can round differently).
+// That equality was checked exhaustively on all 1.09e9 floats in [-6, 0] (the range alpha needs:
+// sigma <= ln(255) + 1e-3) against glibc 2.36, and test_raster_kernel.py samples it on every
+// machine. float64 calls std::exp per lane.
+//
+// SIMD: the pixel loops work on 8 consecutive pixels of a tile row at a time (`Lanes`). Two
+// implementations of the 8-lane operations exist: AVX2 intrinsics, chosen at run time when the
+// CPU has AVX2, and a portable one (arrays of 8, auto-vectorised by the compiler) for every other
+// CPU and for float64. Both perform the same IEEE operations in the same order, so they give
+// bitwise identical results (tested). The build flags stay portable: only the functions of the
+// AVX2 variant are compiled for AVX2 (target attribute), and they run only after
+// __builtin_cpu_supports("avx2").
 //
 // Binning (rk_bin_count / rk_bin_fill): the per-tile lists of tiles.bin_gaussians, built by a
 // counting sort over the visible Gaussians in stable depth order (see the section below).
 //
 // Work split: tiles of tile_size x tile_size pixels; each tile is processed by one thread,
-// Gaussians in the outer loop (front to back), and only the pixels of the Gaussian's bounding
-// box (radii from the projection, one pixel of slack per side) inside the tile in the inner
-// loop. Each pixel still sees its Gaussians in the same front-to-back order, so the per-pixel
-// arithmetic is identical to a pixel-major loop, while a Gaussian a few pixels wide costs only
-// the pixels it can reach. A per-Gaussian sigma cutoff, ln(255 o) plus a margin, rejects pixels
-// before exp() is evaluated; the exact alpha test still decides at the boundary.
+// Gaussians in the outer loop (front to back), pixels inner. For each row of a Gaussian's
+// bounding box inside the tile, only the span of columns where sigma can pass the cutoff is
+// visited: the ellipse sigma <= ln(255 o) + margin, solved per row in double and widened by a
+// bound on the float rounding of sigma plus one pixel (`row_span`), so every pixel the exact
+// per-pixel test could accept is visited; the exact test still decides. Each pixel sees its
+// Gaussians in the same front-to-back order, so its arithmetic is that of a pixel-major loop.
 //
 // Backward walks each pixel's list back to front from its last contributor, recovering the
 // transmittance by division (T_i = T_{i+1} / (1 - alpha_i), as 3DGS and gsplat do; in double).
+// Instead of per-channel sums of f w behind the current Gaussian it carries one per pixel,
+// S = sum_{j behind} w_j <g_image, f_j>, which is all the alpha gradient needs (g_image is fixed
+// per pixel): this removes C doubles of state and work per pair.
 //
 // Determinism across thread counts: the backward pass writes one gradient slot per (tile,
 // Gaussian) intersection, i.e. per entry of the tile lists. A slot is written only by the thread
-// that owns the tile, summing the tile's pixels in a fixed (back-to-front, row-major) order. The
-// slots are then reduced per Gaussian in increasing intersection index (= increasing tile index),
-// with Gaussians partitioned across threads. Every sum therefore has a fixed order that does not
-// depend on how many threads run or which thread took which tile, so 1 and 2 threads give
-// bitwise identical gradients. Per-thread gradient buffers would not: their reduction order
-// depends on the thread count and the dynamic tile schedule. Memory cost: (6 + C) scalars per
-// intersection, a few MB for typical scenes.
+// that owns the tile; within the tile, each of the 8 lanes sums its pixels in a fixed order and
+// the lanes are added in a fixed order, both given by the tile geometry alone. The slots are then
+// reduced per Gaussian in increasing intersection index (= increasing tile index), with Gaussians
+// partitioned across threads. Every sum therefore has a fixed order that does not depend on how
+// many threads run or which thread took which tile, so 1 and 2 threads give bitwise identical
+// gradients. Per-thread gradient buffers would not: their reduction order depends on the thread
+// count and the dynamic tile schedule. Memory cost: (6 + C) scalars per intersection.
 //
 // Threads: std::thread with an atomic tile counter (dynamic schedule, tiles vary widely in cost).
 // std::thread rather than OpenMP avoids loading a second OpenMP runtime next to torch's.
@@ -47,16 +67,49 @@
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <exception>
 #include <functional>
+#include <limits>
+#include <memory>
 #include <mutex>
 #include <system_error>
 #include <thread>
+#include <type_traits>
 #include <vector>
+
+#if (defined(__x86_64__) || defined(__i386__)) && (defined(__GNUC__) || defined(__clang__))
+#define RK_HAVE_AVX2 1
+#include <immintrin.h>
+#else
+#define RK_HAVE_AVX2 0
+#endif
+
+#define RK_INLINE inline __attribute__((always_inline))
+#if RK_HAVE_AVX2
+// Not always_inline: the generic tile passes that call these are compiled once without AVX2;
+// the AVX2 entry functions are `flatten`, which inlines them there.
+#define RK_AVX2 inline __attribute__((target("avx2")))
+#endif
 
 namespace {
 
-constexpr int kAbiVersion = 1;
+constexpr int kAbiVersion = 2;
+constexpr int kLanes = 8;
+
+// Instruction-set variants of the pixel loops (the `isa` argument of the entry points).
+constexpr int64_t kIsaAuto = 0;
+constexpr int64_t kIsaPortable = 1;
+constexpr int64_t kIsaAvx2 = 2;
+
+bool avx2_supported() {
+#if RK_HAVE_AVX2
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("avx2");
+#else
+    return false;
+#endif
+}
 
 template <typename scalar_t>
 struct Rules {
@@ -70,6 +123,271 @@ struct Rules {
 // Margin added to the exact cutoff ln(255 o): exp() and the product with o carry relative errors
 // of a few 1e-7, i.e. a few 1e-7 in sigma; 1e-3 keeps every borderline pixel for the exact test.
 constexpr double kSigmaCutoffMargin = 1e-3;
+// Bound on the float32 rounding error of sigma relative to the size of its terms
+// (0.5 |a| dx^2 + 0.5 |c| dy^2 + |b dx dy|): about 5 roundings of 2^-24 each; 1e-5 is 20x that.
+constexpr double kSigmaRoundingBound = 1e-5;
+
+// ---- exp for float lanes -----------------------------------------------------------------------
+//
+// exp(x) for x in [-87, 0] in double: x = k ln2 + r, |r| <= ln2 / 2, exp(r) by its Taylor series
+// to degree 10 (truncation error < 2.3e-13) evaluated by Estrin's scheme (a shallow dependency
+// chain: the pixel loops are latency-bound), 2^k by adding k to the exponent bits. The result is
+// rounded to float unless it is within kExpMidpointWindow (units of 2^-29 float ulp) of a
+// rounding midpoint: those lanes are recomputed with the C library's expf, which makes the
+// result bitwise equal to expf's (see the header). Both SIMD variants run these exact operations.
+namespace expf_detail {
+constexpr double kInvLn2 = 1.4426950408889634;
+constexpr double kLn2Hi = 6.93147180369123816490e-01;  // fdlibm's split: k * kLn2Hi is exact
+constexpr double kLn2Lo = 1.90821492927058770002e-10;
+constexpr double kShifter = 0x1.8p52;  // adding it rounds to an integer, kept in the low bits
+constexpr double kC2 = 1.0 / 2, kC3 = 1.0 / 6, kC4 = 1.0 / 24, kC5 = 1.0 / 120, kC6 = 1.0 / 720,
+                 kC7 = 1.0 / 5040, kC8 = 1.0 / 40320, kC9 = 1.0 / 362880, kC10 = 1.0 / 3628800;
+constexpr float kLowest = -87.0f;  // exp(-87) is still a normal float
+constexpr int64_t kMidpoint = int64_t(1) << 28;  // half of the 29 bits a double has beyond a float
+constexpr int64_t kExpMidpointWindow = int64_t(1) << 22;
+constexpr int64_t kLowBits = (int64_t(1) << 29) - 1;
+
+// exp(r) for |r| <= ln2 / 2; T is double or an AVX2 4-lane double (the same operations either way).
+template <typename T, typename Splat>
+RK_INLINE T exp_taylor(T r, Splat c) {
+    const T r2 = r * r, r4 = r2 * r2, r8 = r4 * r4;
+    const T p01 = c(1.0) + r, p23 = c(kC2) + c(kC3) * r, p45 = c(kC4) + c(kC5) * r;
+    const T p67 = c(kC6) + c(kC7) * r, p89 = c(kC8) + c(kC9) * r;
+    const T q0 = p01 + p23 * r2, q1 = p45 + p67 * r2, q2 = p89 + c(kC10) * r2;
+    return (q0 + q1 * r4) + q2 * r8;
+}
+
+// One lane of the computation (the portable variant; the AVX2 variant repeats it 8-wide).
+RK_INLINE float exp_lane(float x, bool& near_midpoint) {
+    x = x >= kLowest ? x : kLowest;  // (NaN -> kLowest: only lanes that are masked off get here)
+    x = x <= 0.0f ? x : 0.0f;
+    const double xd = static_cast<double>(x);
+    const double t = xd * kInvLn2 + kShifter;
+    const double k = t - kShifter;
+    const double r = (xd - k * kLn2Hi) - k * kLn2Lo;
+    const double p = exp_taylor(r, [](double v) { return v; });
+    int64_t tb, pb;
+    std::memcpy(&tb, &t, sizeof tb);
+    std::memcpy(&pb, &p, sizeof pb);
+    pb += static_cast<int64_t>(static_cast<uint64_t>(tb) << 52);
+    const int64_t low = pb & kLowBits;
+    near_midpoint = low > kMidpoint - kExpMidpointWindow && low < kMidpoint + kExpMidpointWindow;
+    double result;
+    std::memcpy(&result, &pb, sizeof result);
+    return static_cast<float>(result);
+}
+}  // namespace expf_detail
+
+// ---- 8-lane operations, portable variant --------------------------------------------------------
+//
+// Plain arrays of 8 with lane-wise loops (the compiler vectorises them for the target it is
+// given). Masks are int32 lanes, 0 or -1. Used for float64 everywhere and for float32 on CPUs
+// without AVX2.
+namespace portable {
+
+#define RK_EACH_LANE for (int l = 0; l < kLanes; ++l)
+
+template <typename T>
+struct Vec {
+    T v[kLanes];
+};
+using Mask = Vec<int32_t>;
+using D8 = Vec<double>;
+
+template <typename T>
+RK_INLINE Vec<T> operator+(Vec<T> a, Vec<T> b) { Vec<T> r; RK_EACH_LANE r.v[l] = a.v[l] + b.v[l]; return r; }
+template <typename T>
+RK_INLINE Vec<T> operator-(Vec<T> a, Vec<T> b) { Vec<T> r; RK_EACH_LANE r.v[l] = a.v[l] - b.v[l]; return r; }
+template <typename T>
+RK_INLINE Vec<T> operator*(Vec<T> a, Vec<T> b) { Vec<T> r; RK_EACH_LANE r.v[l] = a.v[l] * b.v[l]; return r; }
+template <typename T>
+RK_INLINE Vec<T> operator/(Vec<T> a, Vec<T> b) { Vec<T> r; RK_EACH_LANE r.v[l] = a.v[l] / b.v[l]; return r; }
+RK_INLINE Mask operator&(Mask a, Mask b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] & b.v[l]; return r; }
+RK_INLINE Mask operator|(Mask a, Mask b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] | b.v[l]; return r; }
+RK_INLINE Mask and_not(Mask a, Mask b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] & ~b.v[l]; return r; }  // a & ~b
+template <typename T>
+RK_INLINE Mask ge(Vec<T> a, Vec<T> b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] >= b.v[l] ? -1 : 0; return r; }
+template <typename T>
+RK_INLINE Mask le(Vec<T> a, Vec<T> b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] <= b.v[l] ? -1 : 0; return r; }
+RK_INLINE Mask lt(Mask a, Mask b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] < b.v[l] ? -1 : 0; return r; }
+template <typename T>
+RK_INLINE Vec<T> select(Mask m, Vec<T> a, Vec<T> b) { Vec<T> r; RK_EACH_LANE r.v[l] = m.v[l] ? a.v[l] : b.v[l]; return r; }
+RK_INLINE bool any(Mask m) { int32_t x = 0; RK_EACH_LANE x |= m.v[l]; return x != 0; }
+RK_INLINE int count(Mask m) { int n = 0; RK_EACH_LANE n += m.v[l] != 0; return n; }
+template <typename T>
+RK_INLINE D8 widen(Vec<T> a) { D8 r; RK_EACH_LANE r.v[l] = static_cast<double>(a.v[l]); return r; }
+// Sum of the 8 lanes in a fixed order (the AVX2 variant adds in the same order).
+RK_INLINE double hsum(D8 a) {
+    const double t0 = a.v[0] + a.v[4], t1 = a.v[1] + a.v[5], t2 = a.v[2] + a.v[6], t3 = a.v[3] + a.v[7];
+    return (t0 + t2) + (t1 + t3);
+}
+
+struct Ops {
+    template <typename T>
+    using V = Vec<T>;
+    using D = D8;
+    using M = Mask;
+    using DM = Mask;  // mask for double lanes
+    template <typename T>
+    static RK_INLINE Vec<T> splat(T x) { Vec<T> r; RK_EACH_LANE r.v[l] = x; return r; }
+    template <typename T>
+    static RK_INLINE Vec<T> lane_index() { Vec<T> r; RK_EACH_LANE r.v[l] = static_cast<T>(l); return r; }
+    template <typename T>
+    static RK_INLINE Vec<T> load(const T* p) { Vec<T> r; std::memcpy(r.v, p, sizeof r.v); return r; }
+    template <typename T>
+    static RK_INLINE void store(T* p, Vec<T> a) { std::memcpy(p, a.v, sizeof a.v); }
+    static RK_INLINE DM dmask(Mask m) { return m; }
+    template <typename T>
+    static RK_INLINE Vec<T> narrow(D8 a) { Vec<T> r; RK_EACH_LANE r.v[l] = static_cast<T>(a.v[l]); return r; }
+    // Lanes whose index lies in [lo, hi].
+    static RK_INLINE Mask span(int32_t lo, int32_t hi) { Mask r; RK_EACH_LANE r.v[l] = (l >= lo && l <= hi) ? -1 : 0; return r; }
+    // exp(-sigma) on the active lanes (others: unspecified finite values).
+    static RK_INLINE Vec<float> exp_neg(Vec<float> sigma, Mask active) {
+        Vec<float> r;
+        RK_EACH_LANE {
+            bool near;
+            r.v[l] = expf_detail::exp_lane(-sigma.v[l], near);
+            if (near && active.v[l]) r.v[l] = std::exp(-sigma.v[l]);
+        }
+        return r;
+    }
+    static RK_INLINE Vec<double> exp_neg(Vec<double> sigma, Mask active) {
+        Vec<double> r;
+        RK_EACH_LANE r.v[l] = active.v[l] ? std::exp(-sigma.v[l]) : 0.0;
+        return r;
+    }
+};
+
+#undef RK_EACH_LANE
+}  // namespace portable
+
+// ---- 8-lane operations, AVX2 variant (float32 only) --------------------------------------------
+#if RK_HAVE_AVX2
+namespace avx2 {
+
+struct F8 {
+    __m256 v;
+};
+struct I8 {  // int32 lanes; masks are 0 or -1
+    __m256i v;
+};
+struct D8 {  // lanes 0-3 in lo, 4-7 in hi
+    __m256d lo, hi;
+};
+struct DM8 {  // a mask widened to 64-bit lanes for selecting doubles
+    __m256d lo, hi;
+};
+
+RK_AVX2 F8 operator+(F8 a, F8 b) { return {_mm256_add_ps(a.v, b.v)}; }
+RK_AVX2 F8 operator-(F8 a, F8 b) { return {_mm256_sub_ps(a.v, b.v)}; }
+RK_AVX2 F8 operator*(F8 a, F8 b) { return {_mm256_mul_ps(a.v, b.v)}; }
+RK_AVX2 D8 operator+(D8 a, D8 b) { return {_mm256_add_pd(a.lo, b.lo), _mm256_add_pd(a.hi, b.hi)}; }
+RK_AVX2 D8 operator-(D8 a, D8 b) { return {_mm256_sub_pd(a.lo, b.lo), _mm256_sub_pd(a.hi, b.hi)}; }
+RK_AVX2 D8 operator*(D8 a, D8 b) { return {_mm256_mul_pd(a.lo, b.lo), _mm256_mul_pd(a.hi, b.hi)}; }
+RK_AVX2 D8 operator/(D8 a, D8 b) { return {_mm256_div_pd(a.lo, b.lo), _mm256_div_pd(a.hi, b.hi)}; }
+RK_AVX2 I8 operator&(I8 a, I8 b) { return {_mm256_and_si256(a.v, b.v)}; }
+RK_AVX2 I8 operator|(I8 a, I8 b) { return {_mm256_or_si256(a.v, b.v)}; }
+RK_AVX2 I8 and_not(I8 a, I8 b) { return {_mm256_andnot_si256(b.v, a.v)}; }  // a & ~b
+// Ordered, non-signalling comparisons: false for NaN, like C++'s >= and <=.
+RK_AVX2 I8 ge(F8 a, F8 b) { return {_mm256_castps_si256(_mm256_cmp_ps(a.v, b.v, _CMP_GE_OQ))}; }
+RK_AVX2 I8 le(F8 a, F8 b) { return {_mm256_castps_si256(_mm256_cmp_ps(a.v, b.v, _CMP_LE_OQ))}; }
+RK_AVX2 I8 lt(I8 a, I8 b) { return {_mm256_cmpgt_epi32(b.v, a.v)}; }
+RK_AVX2 F8 select(I8 m, F8 a, F8 b) { return {_mm256_blendv_ps(b.v, a.v, _mm256_castsi256_ps(m.v))}; }
+RK_AVX2 I8 select(I8 m, I8 a, I8 b) { return {_mm256_blendv_epi8(b.v, a.v, m.v)}; }
+RK_AVX2 D8 select(DM8 m, D8 a, D8 b) { return {_mm256_blendv_pd(b.lo, a.lo, m.lo), _mm256_blendv_pd(b.hi, a.hi, m.hi)}; }
+RK_AVX2 bool any(I8 m) { return !_mm256_testz_si256(m.v, m.v); }
+RK_AVX2 int count(I8 m) { return __builtin_popcount(static_cast<unsigned>(_mm256_movemask_ps(_mm256_castsi256_ps(m.v)))); }
+RK_AVX2 D8 widen(F8 a) {
+    return {_mm256_cvtps_pd(_mm256_castps256_ps128(a.v)), _mm256_cvtps_pd(_mm256_extractf128_ps(a.v, 1))};
+}
+RK_AVX2 double hsum(D8 a) {  // the order of portable::hsum
+    const __m256d t = _mm256_add_pd(a.lo, a.hi);                                   // t0 t1 t2 t3
+    const __m128d u = _mm_add_pd(_mm256_castpd256_pd128(t), _mm256_extractf128_pd(t, 1));  // t0+t2, t1+t3
+    return _mm_cvtsd_f64(_mm_add_sd(u, _mm_unpackhi_pd(u, u)));
+}
+
+// 4 double lanes with the arithmetic operators exp_taylor needs.
+struct Pd4 {
+    __m256d v;
+};
+RK_AVX2 Pd4 operator+(Pd4 a, Pd4 b) { return {_mm256_add_pd(a.v, b.v)}; }
+RK_AVX2 Pd4 operator*(Pd4 a, Pd4 b) { return {_mm256_mul_pd(a.v, b.v)}; }
+
+// exp of 4 lanes in double, as expf_detail::exp_lane; returns the result and the midpoint flags.
+RK_AVX2 __m256d exp4(__m256d x, __m256i& near_midpoint) {
+    using namespace expf_detail;
+    const __m256d shifter = _mm256_set1_pd(kShifter);
+    const __m256d t = _mm256_add_pd(_mm256_mul_pd(x, _mm256_set1_pd(kInvLn2)), shifter);
+    const __m256d k = _mm256_sub_pd(t, shifter);
+    const __m256d r = _mm256_sub_pd(_mm256_sub_pd(x, _mm256_mul_pd(k, _mm256_set1_pd(kLn2Hi))),
+                                    _mm256_mul_pd(k, _mm256_set1_pd(kLn2Lo)));
+    const __m256d p = exp_taylor(Pd4{r}, [](double v) __attribute__((target("avx2"))) { return Pd4{_mm256_set1_pd(v)}; }).v;
+    const __m256i bits = _mm256_add_epi64(_mm256_castpd_si256(p), _mm256_slli_epi64(_mm256_castpd_si256(t), 52));
+    const __m256i low = _mm256_and_si256(bits, _mm256_set1_epi64x(kLowBits));
+    near_midpoint = _mm256_and_si256(_mm256_cmpgt_epi64(low, _mm256_set1_epi64x(kMidpoint - kExpMidpointWindow)),
+                                     _mm256_cmpgt_epi64(_mm256_set1_epi64x(kMidpoint + kExpMidpointWindow), low));
+    return _mm256_castsi256_pd(bits);
+}
+
+struct Ops {
+    template <typename T>
+    using V = F8;  // float32 only
+    using D = D8;
+    using M = I8;
+    using DM = DM8;
+    template <typename T>
+    static RK_AVX2 F8 splat(float x) { return {_mm256_set1_ps(x)}; }
+    static RK_AVX2 I8 splat(int32_t x) { return {_mm256_set1_epi32(x)}; }
+    static RK_AVX2 D8 splat(double x) { return {_mm256_set1_pd(x), _mm256_set1_pd(x)}; }
+    template <typename T>
+    static RK_AVX2 F8 lane_index() { return {_mm256_setr_ps(0, 1, 2, 3, 4, 5, 6, 7)}; }
+    static RK_AVX2 F8 load(const float* p) { return {_mm256_loadu_ps(p)}; }
+    static RK_AVX2 I8 load(const int32_t* p) { return {_mm256_loadu_si256(reinterpret_cast<const __m256i*>(p))}; }
+    static RK_AVX2 D8 load(const double* p) { return {_mm256_loadu_pd(p), _mm256_loadu_pd(p + 4)}; }
+    static RK_AVX2 void store(int32_t* p, I8 a) { _mm256_storeu_si256(reinterpret_cast<__m256i*>(p), a.v); }
+    static RK_AVX2 void store(double* p, D8 a) { _mm256_storeu_pd(p, a.lo); _mm256_storeu_pd(p + 4, a.hi); }
+    static RK_AVX2 DM8 dmask(I8 m) {
+        return {_mm256_castsi256_pd(_mm256_cvtepi32_epi64(_mm256_castsi256_si128(m.v))),
+                _mm256_castsi256_pd(_mm256_cvtepi32_epi64(_mm256_extracti128_si256(m.v, 1)))};
+    }
+    template <typename T>
+    static RK_AVX2 F8 narrow(D8 a) {
+        return {_mm256_insertf128_ps(_mm256_castps128_ps256(_mm256_cvtpd_ps(a.lo)), _mm256_cvtpd_ps(a.hi), 1)};
+    }
+    static RK_AVX2 I8 span(int32_t lo, int32_t hi) {
+        const __m256i lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+        const __m256i outside = _mm256_or_si256(_mm256_cmpgt_epi32(_mm256_set1_epi32(lo), lane),
+                                                _mm256_cmpgt_epi32(lane, _mm256_set1_epi32(hi)));
+        return {_mm256_andnot_si256(outside, _mm256_set1_epi32(-1))};
+    }
+    static RK_AVX2 F8 exp_neg(F8 sigma, I8 active) {
+        using namespace expf_detail;
+        __m256 x = _mm256_sub_ps(_mm256_setzero_ps(), sigma.v);
+        x = _mm256_blendv_ps(_mm256_set1_ps(kLowest), x, _mm256_cmp_ps(x, _mm256_set1_ps(kLowest), _CMP_GE_OQ));
+        x = _mm256_blendv_ps(_mm256_setzero_ps(), x, _mm256_cmp_ps(x, _mm256_setzero_ps(), _CMP_LE_OQ));
+        __m256i near_lo, near_hi;
+        const __m256d lo = exp4(_mm256_cvtps_pd(_mm256_castps256_ps128(x)), near_lo);
+        const __m256d hi = exp4(_mm256_cvtps_pd(_mm256_extractf128_ps(x, 1)), near_hi);
+        __m256 result = _mm256_insertf128_ps(_mm256_castps128_ps256(_mm256_cvtpd_ps(lo)), _mm256_cvtpd_ps(hi), 1);
+        const int near = _mm256_movemask_pd(_mm256_castsi256_pd(near_lo)) |
+                         (_mm256_movemask_pd(_mm256_castsi256_pd(near_hi)) << 4);
+        const int fix = near & _mm256_movemask_ps(_mm256_castsi256_ps(active.v));
+        if (fix) {
+            alignas(32) float xs[kLanes], rs[kLanes];
+            _mm256_store_ps(xs, x);
+            _mm256_store_ps(rs, result);
+            for (int l = 0; l < kLanes; ++l)
+                if (fix & (1 << l)) rs[l] = std::exp(xs[l]);
+            result = _mm256_load_ps(rs);
+        }
+        return {result};
+    }
+};
+
+}  // namespace avx2
+#endif  // RK_HAVE_AVX2
+
+// ---- Problem description ---------------------------------------------------------------------
 
 struct Problem {
     const void* means2d;   // [N, 2]
@@ -86,12 +404,13 @@ struct Problem {
     int64_t tile_size;
     int64_t tiles_x;
     int64_t tiles_y;
+    int64_t row_stride;  // tile-local buffers: tile_size rounded up to a multiple of kLanes
 };
 
 struct TileRect {
     int64_t x0, y0, x1, y1;  // pixel rectangle [x0, x1) x [y0, y1)
     int64_t width() const { return x1 - x0; }
-    int64_t pixels() const { return (x1 - x0) * (y1 - y0); }
+    int64_t rows() const { return y1 - y0; }
 };
 
 TileRect tile_rect(const Problem& p, int64_t tile) {
@@ -109,10 +428,22 @@ TileRect tile_rect(const Problem& p, int64_t tile) {
 template <typename scalar_t>
 struct Splat {
     scalar_t mx, my, a, b, c, o;
-    double sigma_cutoff;
+    scalar_t cut;       // the sigma pre-filter in the scalar type: largest value <= sigma_cutoff
+    bool never;         // no pixel can pass (o = 0)
+    bool span_ok;       // row spans can be solved from the conic (a > 0, all finite)
+    double span_c2a;    // 2 a cut' (cut' = sigma_cutoff widened by the rounding bound)
+    double det;         // a c - b^2
+    double b_over_a, inv_a, centre_x;  // centre_x = mx - 0.5 (pixel column of the mean)
     double col_lo, col_hi, row_lo, row_hi;  // pixel columns / rows it can reach (unclipped)
     const scalar_t* feature;
 };
+
+template <typename scalar_t>
+scalar_t round_down(double x) {
+    scalar_t y = static_cast<scalar_t>(x);
+    if (static_cast<double>(y) > x) y = std::nextafter(y, -std::numeric_limits<scalar_t>::infinity());
+    return y;
+}
 
 template <typename scalar_t>
 Splat<scalar_t> prepare_splat(const Problem& p, int64_t g) {
@@ -127,20 +458,39 @@ Splat<scalar_t> prepare_splat(const Problem& p, int64_t g) {
     s.o = static_cast<const scalar_t*>(p.opacities)[g];
     s.feature = static_cast<const scalar_t*>(p.features) + g * p.channels;
     // alpha >= 1/255 needs o exp(-sigma) >= 1/255, i.e. sigma <= ln(255 o) (-inf when o = 0).
-    s.sigma_cutoff = std::log(255.0 * static_cast<double>(s.o)) + kSigmaCutoffMargin;
+    const double sigma_cutoff = std::log(255.0 * static_cast<double>(s.o)) + kSigmaCutoffMargin;
+    s.never = !(sigma_cutoff > -std::numeric_limits<double>::infinity());
+    // A float sigma compares <= sigma_cutoff exactly when it is <= the cutoff rounded down.
+    s.cut = s.never ? scalar_t(0) : round_down<scalar_t>(sigma_cutoff);
     // Pixel centres j + 0.5 within the radius of the mean, plus one pixel of slack per side (the
     // radii bound the alpha >= 1/255 region; the slack absorbs rounding at its edge). Kept in
     // double and clamped to a tile before any conversion, so huge radii cannot overflow.
     const double rx = static_cast<double>(p.radii[2 * g]);
     const double ry = static_cast<double>(p.radii[2 * g + 1]);
-    s.col_lo = std::floor(static_cast<double>(s.mx) - rx - 0.5);
-    s.col_hi = std::ceil(static_cast<double>(s.mx) + rx - 0.5);
-    s.row_lo = std::floor(static_cast<double>(s.my) - ry - 0.5);
-    s.row_hi = std::ceil(static_cast<double>(s.my) + ry - 0.5);
+    const double mxd = static_cast<double>(s.mx), myd = static_cast<double>(s.my);
+    s.col_lo = std::floor(mxd - rx - 0.5);
+    s.col_hi = std::ceil(mxd + rx - 0.5);
+    s.row_lo = std::floor(myd - ry - 0.5);
+    s.row_hi = std::ceil(myd + ry - 0.5);
+    // Row spans: in row dy the pixels with exact sigma <= cut' form the interval
+    // dx in [(-b dy - root) / a, (-b dy + root) / a], root = sqrt(2 a cut' - dy^2 (a c - b^2)).
+    // cut' adds to the cutoff a bound on the rounding of the float sigma over the box
+    // (|dx| <= rx + 1, |dy| <= ry + 1), so a pixel whose float sigma passes lies in the span.
+    const double a = static_cast<double>(s.a), b = static_cast<double>(s.b), c = static_cast<double>(s.c);
+    const double X = rx + 2.0, Y = ry + 2.0;
+    const double cut_wide =
+        sigma_cutoff + kSigmaRoundingBound * (0.5 * std::fabs(a) * X * X + 0.5 * std::fabs(c) * Y * Y + std::fabs(b) * X * Y);
+    s.span_c2a = 2.0 * a * cut_wide;
+    s.det = a * c - b * b;
+    s.inv_a = 1.0 / a;
+    s.b_over_a = b / a;
+    s.centre_x = mxd - 0.5;
+    s.span_ok = a > 0 && std::isfinite(s.span_c2a) && std::isfinite(s.det) && std::isfinite(s.inv_a) &&
+                std::isfinite(s.b_over_a) && std::isfinite(s.centre_x);
     return s;
 }
 
-// The pixels of one tile a Gaussian can reach (inclusive ranges).
+// The pixels of one tile a Gaussian's box can reach (inclusive ranges).
 struct Footprint {
     int64_t jlo, jhi, ilo, ihi;
     bool empty() const { return jlo > jhi || ilo > ihi; }
@@ -156,24 +506,25 @@ inline Footprint clip(const Splat<scalar_t>& s, const TileRect& r) {
     return f;
 }
 
-// Evaluation of one Gaussian at one pixel centre, in the oracle's operation order.
+// Columns [jlo, jhi] of the footprint row at vertical offset dy (pixel centre - mean) that can
+// pass the sigma cutoff; false when none can. Conservative: one pixel of slack per side, and the
+// whole footprint row when the span cannot be solved.
 template <typename scalar_t>
-struct Eval {
-    scalar_t dx, dy, vis, alpha;
-    bool unclamped;  // o * vis <= alpha_max: alpha depends on o and sigma (clamp passes grad)
-};
-
-template <typename scalar_t>
-inline bool evaluate(const Splat<scalar_t>& s, scalar_t px, scalar_t py, Eval<scalar_t>& e) {
-    e.dx = px - s.mx;
-    e.dy = py - s.my;
-    const scalar_t sigma = static_cast<scalar_t>(0.5) * (s.a * e.dx * e.dx + s.c * e.dy * e.dy) + s.b * e.dx * e.dy;
-    if (!(sigma >= 0) || static_cast<double>(sigma) > s.sigma_cutoff) return false;
-    e.vis = std::exp(-sigma);
-    const scalar_t raw = s.o * e.vis;
-    e.unclamped = raw <= Rules<scalar_t>::alpha_max;
-    e.alpha = e.unclamped ? raw : Rules<scalar_t>::alpha_max;
-    return e.alpha >= Rules<scalar_t>::alpha_min;
+RK_INLINE bool row_span(const Splat<scalar_t>& s, const Footprint& fp, double dy, int64_t& jlo, int64_t& jhi) {
+    jlo = fp.jlo;
+    jhi = fp.jhi;
+    if (!s.span_ok) return true;
+    const double disc = s.span_c2a - dy * dy * s.det;
+    if (std::isnan(disc)) return true;
+    if (disc < 0) return false;
+    const double half_width = std::sqrt(disc) * s.inv_a;
+    const double centre = s.centre_x - s.b_over_a * dy;
+    const double lo = std::ceil(centre - half_width) - 1.0;
+    const double hi = std::floor(centre + half_width) + 1.0;
+    if (std::isnan(lo) || std::isnan(hi)) return true;
+    if (lo > static_cast<double>(jlo)) jlo = static_cast<int64_t>(std::min(lo, static_cast<double>(fp.jhi) + 1.0));
+    if (hi < static_cast<double>(jhi)) jhi = static_cast<int64_t>(std::max(hi, static_cast<double>(fp.jlo) - 1.0));
+    return jlo <= jhi;
 }
 
 // Runs fn(item, worker) for item in [0, n) on `threads` workers with a dynamic schedule. An
@@ -211,6 +562,20 @@ void parallel_items(int64_t n, int64_t threads, const std::function<void(int64_t
     if (error) std::rethrow_exception(error);
 }
 
+// The 8-pixel chunks of the image columns [jlo, jhi] of one tile row: RK_FOR_EACH_CHUNK binds
+// `start` (the tile-local column of lane 0) and `lanes` (the mask of the chunk's lanes inside
+// [jlo, jhi]) for the loop body. A span of up to 8 pixels is one chunk; chunks never leave the
+// row buffer. (A macro rather than a function taking a lambda: a lambda body would be compiled
+// as a function of its own, outside the AVX2 target of the caller.)
+#define RK_FOR_EACH_CHUNK(Ops, p, r, jlo, jhi, start, lanes)                                        \
+    for (int64_t rk_hi_ = (jhi) - (r).x0, rk_from_ = (jlo) - (r).x0,                                   \
+                 start = std::min(rk_from_, (p).row_stride - kLanes);                                  \
+         rk_from_ <= rk_hi_; rk_from_ = start + kLanes, start = std::min(rk_from_, (p).row_stride - kLanes)) \
+        if (const auto lanes = Ops::span(static_cast<int32_t>(rk_from_ - start), static_cast<int32_t>(rk_hi_ - start)); \
+            true)
+
+// ---- Forward ---------------------------------------------------------------------------------
+
 template <typename scalar_t>
 struct ForwardOut {
     scalar_t* image;       // [H, W, C]
@@ -219,66 +584,94 @@ struct ForwardOut {
     int32_t* last;         // [H, W] 1 + position in the tile list of the last contributor (0: none)
 };
 
-template <typename scalar_t>
-struct ForwardScratch {
-    std::vector<double> T;
-    std::vector<double> accum;
-    std::vector<int32_t> last;
-    std::vector<uint8_t> done;
+struct ForwardScratch {  // tile-local, row stride Problem::row_stride
+    std::vector<double> T, accum;  // accum: [C][pixels]
+    std::vector<int32_t> last, done;
 };
 
-template <typename scalar_t>
-void forward_tile(const Problem& p, const Splat<scalar_t>* splats, int64_t tile, const ForwardOut<scalar_t>& out,
-                  ForwardScratch<scalar_t>& s) {
+template <typename Ops, typename scalar_t>
+inline void forward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, int64_t tile,
+                                 const ForwardOut<scalar_t>& out, ForwardScratch& s) {
+    using V = typename Ops::template V<scalar_t>;
+    using D = typename Ops::D;
+    using M = typename Ops::M;
+    using R = Rules<scalar_t>;
     const TileRect r = tile_rect(p, tile);
-    const int64_t npix = r.pixels();
+    const int64_t n = r.rows() * p.row_stride;
     const int64_t C = p.channels;
-    s.T.assign(npix, 1.0);
-    s.accum.assign(npix * C, 0.0);
-    s.last.assign(npix, 0);
-    s.done.assign(npix, 0);
-    int64_t alive = npix;
+    s.T.assign(n, 1.0);
+    s.accum.assign(n * C, 0.0);
+    s.last.assign(n, 0);
+    s.done.assign(n, 0);
+    int64_t alive = r.rows() * r.width();
+    const V half = Ops::template splat<scalar_t>(0.5), zero = Ops::template splat<scalar_t>(0);
+    const V one = Ops::template splat<scalar_t>(1), alpha_min = Ops::template splat<scalar_t>(R::alpha_min);
+    const V alpha_max = Ops::template splat<scalar_t>(R::alpha_max);
+    const V t_min = Ops::template splat<scalar_t>(R::transmittance_min);
+    const V lane = Ops::template lane_index<scalar_t>();
     const int64_t begin = p.offsets[tile];
     const int64_t end = p.offsets[tile + 1];
     for (int64_t k = begin; k < end && alive > 0; ++k) {
+        if (k + 4 < end) __builtin_prefetch(&splats[p.gaussian_ids[k + 4]]);
         const Splat<scalar_t>& g = splats[p.gaussian_ids[k]];
+        if (g.never) continue;
         const Footprint fp = clip(g, r);
         if (fp.empty()) continue;
-        const int32_t position = static_cast<int32_t>(k - begin + 1);
+        const M position = Ops::splat(static_cast<int32_t>(k - begin + 1));
+        const V mx = Ops::template splat<scalar_t>(g.mx), a = Ops::template splat<scalar_t>(g.a);
+        const V b = Ops::template splat<scalar_t>(g.b), o = Ops::template splat<scalar_t>(g.o);
+        const V cut = Ops::template splat<scalar_t>(g.cut);
         for (int64_t i = fp.ilo; i <= fp.ihi; ++i) {
-            const scalar_t py = static_cast<scalar_t>(i) + static_cast<scalar_t>(0.5);
-            const int64_t row = (i - r.y0) * r.width() - r.x0;
-            for (int64_t j = fp.jlo; j <= fp.jhi; ++j) {
-                const int64_t q = row + j;
-                if (s.done[q]) continue;
-                Eval<scalar_t> e;
-                if (!evaluate(g, static_cast<scalar_t>(j) + static_cast<scalar_t>(0.5), py, e)) continue;
-                const double T = s.T[q];
-                const double next_T = T * static_cast<double>(static_cast<scalar_t>(1) - e.alpha);
-                if (static_cast<scalar_t>(next_T) <= Rules<scalar_t>::transmittance_min) {
-                    s.done[q] = 1;
-                    --alive;
-                    continue;
+            const scalar_t dy_s = (static_cast<scalar_t>(i) + static_cast<scalar_t>(0.5)) - g.my;
+            int64_t jlo, jhi;
+            if (!row_span(g, fp, static_cast<double>(dy_s), jlo, jhi)) continue;
+            const V dy = Ops::template splat<scalar_t>(dy_s);
+            const V c_dy_dy = Ops::template splat<scalar_t>(g.c * dy_s * dy_s);
+            const int64_t row = (i - r.y0) * p.row_stride;
+            RK_FOR_EACH_CHUNK(Ops, p, r, jlo, jhi, start, lanes) {
+                const int64_t q = row + start;
+                M m = and_not(lanes, Ops::load(s.done.data() + q));
+                const V px = (Ops::template splat<scalar_t>(static_cast<scalar_t>(r.x0 + start)) + lane) + half;
+                const V dx = px - mx;
+                const V sigma = half * (a * dx * dx + c_dy_dy) + b * dx * dy;
+                m = m & ge(sigma, zero) & le(sigma, cut);
+                if (!any(m)) continue;
+                const V raw = o * Ops::exp_neg(sigma, m);
+                const V alpha = select(le(raw, alpha_max), raw, alpha_max);
+                m = m & ge(alpha, alpha_min);
+                const D T = Ops::load(s.T.data() + q);
+                const D next_T = T * widen(one - alpha);
+                const M stop = m & le(Ops::template narrow<scalar_t>(next_T), t_min);
+                if (any(stop)) {
+                    Ops::store(s.done.data() + q, Ops::load(s.done.data() + q) | stop);
+                    alive -= count(stop);
+                    m = and_not(m, stop);
                 }
-                const scalar_t w = e.alpha * static_cast<scalar_t>(T);
-                double* acc = &s.accum[q * C];
-                for (int64_t ch = 0; ch < C; ++ch) acc[ch] += static_cast<double>(g.feature[ch] * w);
-                s.T[q] = next_T;
-                s.last[q] = position;
+                const auto md = Ops::dmask(m);
+                const V w = alpha * Ops::template narrow<scalar_t>(T);
+                for (int64_t ch = 0; ch < C; ++ch) {
+                    double* acc = s.accum.data() + ch * n + q;
+                    const D before = Ops::load(acc);
+                    Ops::store(acc, select(md, before + widen(Ops::template splat<scalar_t>(g.feature[ch]) * w), before));
+                }
+                Ops::store(s.T.data() + q, select(md, next_T, T));
+                Ops::store(s.last.data() + q, select(m, position, Ops::load(s.last.data() + q)));
             }
         }
     }
     for (int64_t i = r.y0; i < r.y1; ++i) {
         for (int64_t j = r.x0; j < r.x1; ++j) {
-            const int64_t q = (i - r.y0) * r.width() + (j - r.x0);
+            const int64_t q = (i - r.y0) * p.row_stride + (j - r.x0);
             const int64_t pix = i * p.width + j;
-            for (int64_t ch = 0; ch < C; ++ch) out.image[pix * C + ch] = static_cast<scalar_t>(s.accum[q * C + ch]);
+            for (int64_t ch = 0; ch < C; ++ch) out.image[pix * C + ch] = static_cast<scalar_t>(s.accum[ch * n + q]);
             out.alpha[pix] = static_cast<scalar_t>(1.0 - s.T[q]);
             out.transmittance[pix] = s.T[q];
             out.last[pix] = s.last[q];
         }
     }
 }
+
+// ---- Backward --------------------------------------------------------------------------------
 
 template <typename scalar_t>
 struct BackwardIn {
@@ -288,102 +681,206 @@ struct BackwardIn {
     const scalar_t* grad_alpha;  // [H, W]
 };
 
-template <typename scalar_t>
-struct BackwardScratch {
-    std::vector<double> T, T_final, buffer;  // buffer: sum of f w behind the current Gaussian
-    std::vector<scalar_t> g_img, g_alpha;
+struct BackwardScratch {  // tile-local, row stride Problem::row_stride
+    std::vector<double> T;            // transmittance behind the current Gaussian
+    std::vector<double> behind;       // S: sum over Gaussians behind of w <g_image, f>
+    std::vector<double> g_alpha_T;    // g_alpha_out * T_final
+    std::vector<double> g_image;      // [C][pixels]
     std::vector<int32_t> last;
-    std::vector<double> g_feature;
+    std::vector<double> g_feature;    // [C][kLanes] per-lane sums of the current Gaussian
 };
 
 // Slot layout per intersection: [means2d x, y | conic a, b, c | opacity | features 0..C-1].
 constexpr int64_t kSlotFixed = 6;
 
-template <typename scalar_t>
-void backward_tile(const Problem& p, const Splat<scalar_t>* splats, int64_t tile, const BackwardIn<scalar_t>& in,
-                   scalar_t* slots, BackwardScratch<scalar_t>& s) {
+template <typename Ops, typename scalar_t>
+inline void backward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, int64_t tile,
+                                  const BackwardIn<scalar_t>& in, scalar_t* slots, BackwardScratch& s) {
+    using V = typename Ops::template V<scalar_t>;
+    using D = typename Ops::D;
+    using M = typename Ops::M;
+    using R = Rules<scalar_t>;
     const TileRect r = tile_rect(p, tile);
-    const int64_t npix = r.pixels();
+    const int64_t n = r.rows() * p.row_stride;
     const int64_t C = p.channels;
     const int64_t stride = kSlotFixed + C;
-    s.T.resize(npix);
-    s.T_final.resize(npix);
-    s.last.resize(npix);
-    s.g_alpha.resize(npix);
-    s.g_img.resize(npix * C);
-    s.buffer.assign(npix * C, 0.0);
-    s.g_feature.resize(C);
+    s.T.assign(n, 1.0);
+    s.behind.assign(n, 0.0);
+    s.g_alpha_T.assign(n, 0.0);
+    s.g_image.assign(n * C, 0.0);
+    s.last.assign(n, 0);
+    s.g_feature.resize(C * kLanes);
     int32_t max_last = 0;
     for (int64_t i = r.y0; i < r.y1; ++i) {
         for (int64_t j = r.x0; j < r.x1; ++j) {
-            const int64_t q = (i - r.y0) * r.width() + (j - r.x0);
+            const int64_t q = (i - r.y0) * p.row_stride + (j - r.x0);
             const int64_t pix = i * p.width + j;
-            s.T[q] = s.T_final[q] = in.transmittance[pix];
+            s.T[q] = in.transmittance[pix];
             s.last[q] = in.last[pix];
-            s.g_alpha[q] = in.grad_alpha[pix];
-            for (int64_t ch = 0; ch < C; ++ch) s.g_img[q * C + ch] = in.grad_image[pix * C + ch];
+            // d (1 - T_final) / d alpha_i = T_final / (1 - alpha_i): the part of the alpha
+            // gradient that does not depend on the Gaussians behind.
+            s.g_alpha_T[q] = static_cast<double>(in.grad_alpha[pix]) * in.transmittance[pix];
+            for (int64_t ch = 0; ch < C; ++ch) s.g_image[ch * n + q] = static_cast<double>(in.grad_image[pix * C + ch]);
             max_last = std::max(max_last, s.last[q]);
         }
     }
+    const V half = Ops::template splat<scalar_t>(0.5), zero = Ops::template splat<scalar_t>(0);
+    const V one = Ops::template splat<scalar_t>(1), alpha_min = Ops::template splat<scalar_t>(R::alpha_min);
+    const V alpha_max = Ops::template splat<scalar_t>(R::alpha_max);
+    const V lane = Ops::template lane_index<scalar_t>();
+    const D one_d = Ops::splat(1.0), zero_d = Ops::splat(0.0);
     const int64_t begin = p.offsets[tile];
+    const int64_t end = p.offsets[tile + 1];
+    for (int64_t k = end - 1; k >= begin + max_last; --k) std::fill(slots + k * stride, slots + (k + 1) * stride, scalar_t(0));
     for (int64_t k = begin + max_last - 1; k >= begin; --k) {
+        if (k - 4 >= begin) __builtin_prefetch(&splats[p.gaussian_ids[k - 4]]);
         const Splat<scalar_t>& g = splats[p.gaussian_ids[k]];
-        const Footprint fp = clip(g, r);
         scalar_t* slot = slots + k * stride;
-        if (fp.empty()) continue;  // slot stays zero
-        const int32_t position = static_cast<int32_t>(k - begin);
-        double g_mx = 0, g_my = 0, g_a = 0, g_b = 0, g_c = 0, g_o = 0;
+        std::fill(slot, slot + stride, scalar_t(0));
+        if (g.never) continue;
+        const Footprint fp = clip(g, r);
+        if (fp.empty()) continue;
+        const M position = Ops::splat(static_cast<int32_t>(k - begin));
+        const V mx = Ops::template splat<scalar_t>(g.mx), a = Ops::template splat<scalar_t>(g.a);
+        const V b = Ops::template splat<scalar_t>(g.b), o = Ops::template splat<scalar_t>(g.o);
+        const V cut = Ops::template splat<scalar_t>(g.cut);
+        const D minus_o = Ops::splat(-static_cast<double>(g.o));
         std::fill(s.g_feature.begin(), s.g_feature.end(), 0.0);
+        // Per-lane sums over the tile of g_o, and of g_sigma times dx^2, dx dy, dy^2, dx, dy.
+        D sum_o = zero_d, sum_xx = zero_d, sum_xy = zero_d, sum_yy = zero_d, sum_x = zero_d, sum_y = zero_d;
+        bool touched = false;
         for (int64_t i = fp.ilo; i <= fp.ihi; ++i) {
-            const scalar_t py = static_cast<scalar_t>(i) + static_cast<scalar_t>(0.5);
-            const int64_t row = (i - r.y0) * r.width() - r.x0;
-            for (int64_t j = fp.jlo; j <= fp.jhi; ++j) {
-                const int64_t q = row + j;
-                if (position >= s.last[q]) continue;  // behind this pixel's last contributor
-                Eval<scalar_t> e;
-                if (!evaluate(g, static_cast<scalar_t>(j) + static_cast<scalar_t>(0.5), py, e)) continue;
-                const double one_minus = static_cast<double>(static_cast<scalar_t>(1) - e.alpha);
-                const double inv_one_minus = 1.0 / one_minus;
-                const double T = s.T[q] * inv_one_minus;  // transmittance in front of this Gaussian
-                const double w = static_cast<double>(e.alpha) * T;
-                const scalar_t* gi = &s.g_img[q * C];
-                double* buf = &s.buffer[q * C];
-                // d image / d alpha_i = f_i T_i - (sum_{j>i} f_j w_j) / (1 - alpha_i);
-                // d (1 - T_final) / d alpha_i = T_final / (1 - alpha_i).
-                double front = 0.0, behind = static_cast<double>(s.g_alpha[q]) * s.T_final[q];
+            const scalar_t dy_s = (static_cast<scalar_t>(i) + static_cast<scalar_t>(0.5)) - g.my;
+            int64_t jlo, jhi;
+            if (!row_span(g, fp, static_cast<double>(dy_s), jlo, jhi)) continue;
+            const V dy = Ops::template splat<scalar_t>(dy_s);
+            const V c_dy_dy = Ops::template splat<scalar_t>(g.c * dy_s * dy_s);
+            const int64_t row = (i - r.y0) * p.row_stride;
+            // This row's per-lane sums of g_sigma, g_sigma dx, g_sigma dx^2 (dy is constant).
+            D row_s = zero_d, row_sx = zero_d, row_sxx = zero_d;
+            bool row_touched = false;
+            RK_FOR_EACH_CHUNK(Ops, p, r, jlo, jhi, start, lanes) {
+                const int64_t q = row + start;
+                M m = lanes & lt(position, Ops::load(s.last.data() + q));  // in front of the last contributor
+                if (!any(m)) continue;
+                const V px = (Ops::template splat<scalar_t>(static_cast<scalar_t>(r.x0 + start)) + lane) + half;
+                const V dx = px - mx;
+                const V sigma = half * (a * dx * dx + c_dy_dy) + b * dx * dy;
+                m = m & ge(sigma, zero) & le(sigma, cut);
+                if (!any(m)) continue;
+                const V vis = Ops::exp_neg(sigma, m);
+                const V raw = o * vis;
+                const M unclamped = le(raw, alpha_max);  // the clamp at 0.999 passes no gradient
+                const V alpha = select(unclamped, raw, alpha_max);
+                m = m & ge(alpha, alpha_min);
+                if (!any(m)) continue;
+                row_touched = true;
+                const auto md = Ops::dmask(m);
+                const D inv_one_minus = one_d / widen(one - alpha);
+                const D T_behind = Ops::load(s.T.data() + q);
+                const D T = T_behind * inv_one_minus;  // transmittance in front of this Gaussian
+                const D w = select(md, widen(alpha) * T, zero_d);
+                // d image / d alpha_i = f_i T_i - (sum_{j>i} f_j w_j) / (1 - alpha_i), dotted with
+                // g_image: front * T - S / (1 - alpha_i).
+                D front = zero_d;
                 for (int64_t ch = 0; ch < C; ++ch) {
-                    const double f = static_cast<double>(g.feature[ch]);
-                    const double gc = static_cast<double>(gi[ch]);
-                    s.g_feature[ch] += w * gc;
-                    front += gc * f;
-                    behind -= gc * buf[ch];
-                    buf[ch] += f * w;
+                    const D gc = Ops::load(s.g_image.data() + ch * n + q);
+                    front = front + gc * Ops::splat(static_cast<double>(g.feature[ch]));
+                    double* gf = s.g_feature.data() + ch * kLanes;
+                    Ops::store(gf, Ops::load(gf) + w * gc);
                 }
-                const double g_alpha = front * T + behind * inv_one_minus;
-                s.T[q] = T;
-                if (!e.unclamped) continue;  // alpha clamped at 0.999: no gradient to o, sigma
-                const double vis = static_cast<double>(e.vis);
-                g_o += g_alpha * vis;
-                const double g_sigma = -g_alpha * static_cast<double>(g.o) * vis;
-                const double dx = static_cast<double>(e.dx);
-                const double dy = static_cast<double>(e.dy);
-                g_a += g_sigma * 0.5 * dx * dx;
-                g_b += g_sigma * dx * dy;
-                g_c += g_sigma * 0.5 * dy * dy;
-                // dx = px - mx, so d sigma / d mx = -(a dx + b dy).
-                g_mx -= g_sigma * (static_cast<double>(g.a) * dx + static_cast<double>(g.b) * dy);
-                g_my -= g_sigma * (static_cast<double>(g.b) * dx + static_cast<double>(g.c) * dy);
+                const D S = Ops::load(s.behind.data() + q);
+                const D g_alpha = front * T + (Ops::load(s.g_alpha_T.data() + q) - S) * inv_one_minus;
+                Ops::store(s.behind.data() + q, select(md, S + w * front, S));
+                Ops::store(s.T.data() + q, select(md, T, T_behind));
+                const auto mu = Ops::dmask(m & unclamped);
+                const D g_vis = g_alpha * widen(vis);  // d loss / d o
+                sum_o = sum_o + select(mu, g_vis, zero_d);
+                const D g_sigma = select(mu, g_vis * minus_o, zero_d);
+                const D dxd = widen(dx);
+                const D t = g_sigma * dxd;
+                row_s = row_s + g_sigma;
+                row_sx = row_sx + t;
+                row_sxx = row_sxx + t * dxd;
             }
+            if (!row_touched) continue;
+            touched = true;
+            const D dyd = Ops::splat(static_cast<double>(dy_s));
+            sum_xx = sum_xx + row_sxx;
+            sum_xy = sum_xy + row_sx * dyd;
+            sum_yy = sum_yy + row_s * (dyd * dyd);
+            sum_x = sum_x + row_sx;
+            sum_y = sum_y + row_s * dyd;
         }
-        slot[0] = static_cast<scalar_t>(g_mx);
-        slot[1] = static_cast<scalar_t>(g_my);
-        slot[2] = static_cast<scalar_t>(g_a);
-        slot[3] = static_cast<scalar_t>(g_b);
-        slot[4] = static_cast<scalar_t>(g_c);
-        slot[5] = static_cast<scalar_t>(g_o);
-        for (int64_t ch = 0; ch < C; ++ch) slot[kSlotFixed + ch] = static_cast<scalar_t>(s.g_feature[ch]);
+        if (!touched) continue;
+        // sigma = 0.5 (a dx^2 + c dy^2) + b dx dy with dx = px - mx: d sigma / d mx = -(a dx + b dy).
+        const double sx = hsum(sum_x), sy = hsum(sum_y);
+        const double ad = static_cast<double>(g.a), bd = static_cast<double>(g.b), cd = static_cast<double>(g.c);
+        slot[0] = static_cast<scalar_t>(-(ad * sx + bd * sy));
+        slot[1] = static_cast<scalar_t>(-(bd * sx + cd * sy));
+        slot[2] = static_cast<scalar_t>(0.5 * hsum(sum_xx));
+        slot[3] = static_cast<scalar_t>(hsum(sum_xy));
+        slot[4] = static_cast<scalar_t>(0.5 * hsum(sum_yy));
+        slot[5] = static_cast<scalar_t>(hsum(sum_o));
+        for (int64_t ch = 0; ch < C; ++ch)
+            slot[kSlotFixed + ch] = static_cast<scalar_t>(hsum(Ops::load(s.g_feature.data() + ch * kLanes)));
     }
 }
+
+// ---- Per-ISA instantiations of the tile passes -------------------------------------------------
+
+template <typename scalar_t>
+using ForwardTileFn = void (*)(const Problem&, const Splat<scalar_t>*, int64_t, const ForwardOut<scalar_t>&,
+                               ForwardScratch&);
+template <typename scalar_t>
+using BackwardTileFn = void (*)(const Problem&, const Splat<scalar_t>*, int64_t, const BackwardIn<scalar_t>&,
+                                scalar_t*, BackwardScratch&);
+
+template <typename scalar_t>
+void forward_tile_portable(const Problem& p, const Splat<scalar_t>* splats, int64_t tile,
+                           const ForwardOut<scalar_t>& out, ForwardScratch& s) {
+    forward_tile_impl<portable::Ops, scalar_t>(p, splats, tile, out, s);
+}
+template <typename scalar_t>
+void backward_tile_portable(const Problem& p, const Splat<scalar_t>* splats, int64_t tile,
+                            const BackwardIn<scalar_t>& in, scalar_t* slots, BackwardScratch& s) {
+    backward_tile_impl<portable::Ops, scalar_t>(p, splats, tile, in, slots, s);
+}
+
+#if RK_HAVE_AVX2
+__attribute__((target("avx2"), flatten)) void forward_tile_avx2(const Problem& p, const Splat<float>* splats, int64_t tile,
+                                                       const ForwardOut<float>& out, ForwardScratch& s) {
+    forward_tile_impl<avx2::Ops, float>(p, splats, tile, out, s);
+}
+__attribute__((target("avx2"), flatten)) void backward_tile_avx2(const Problem& p, const Splat<float>* splats, int64_t tile,
+                                                        const BackwardIn<float>& in, float* slots,
+                                                        BackwardScratch& s) {
+    backward_tile_impl<avx2::Ops, float>(p, splats, tile, in, slots, s);
+}
+#endif
+
+// Resolves the `isa` argument: kIsaAuto picks AVX2 where the CPU has it (float32 only; float64
+// always runs the portable variant). Returns false for a variant this CPU cannot run.
+template <typename scalar_t>
+bool pick_tile_passes(int64_t isa, ForwardTileFn<scalar_t>& forward, BackwardTileFn<scalar_t>& backward) {
+    forward = forward_tile_portable<scalar_t>;
+    backward = backward_tile_portable<scalar_t>;
+    if (isa == kIsaPortable) return true;
+    const bool avx2 = avx2_supported();
+    if (isa == kIsaAvx2 && !avx2) return false;
+    if (isa != kIsaAuto && isa != kIsaAvx2) return false;
+#if RK_HAVE_AVX2
+    if constexpr (std::is_same<scalar_t, float>::value) {
+        if (avx2) {
+            forward = forward_tile_avx2;
+            backward = backward_tile_avx2;
+        }
+    }
+#endif
+    return true;
+}
+
+// ---- Reduction of the backward slots -----------------------------------------------------------
 
 template <typename scalar_t>
 struct Gradients {
@@ -528,6 +1025,7 @@ Problem make_problem(const void* means2d, const void* conics, const void* opacit
     p.tile_size = tile_size;
     p.tiles_x = (width + tile_size - 1) / tile_size;
     p.tiles_y = (height + tile_size - 1) / tile_size;
+    p.row_stride = (tile_size + kLanes - 1) / kLanes * kLanes;
     return p;
 }
 
@@ -543,28 +1041,42 @@ std::vector<Splat<scalar_t>> prepare_splats(const Problem& p, int64_t threads) {
     return splats;
 }
 
+// Status codes of the entry points.
+constexpr int kOk = 0;
+constexpr int kOutOfMemory = 2;
+constexpr int kFailed = 3;
+constexpr int kIsaUnavailable = 4;
+
 template <typename scalar_t>
-int forward(const Problem& p, int64_t threads, const ForwardOut<scalar_t>& out) {
+int forward(const Problem& p, int64_t threads, int64_t isa, const ForwardOut<scalar_t>& out) {
+    ForwardTileFn<scalar_t> forward_tile;
+    BackwardTileFn<scalar_t> unused;
+    if (!pick_tile_passes<scalar_t>(isa, forward_tile, unused)) return kIsaUnavailable;
     const int64_t workers = std::max<int64_t>(1, threads);
     const std::vector<Splat<scalar_t>> splats = prepare_splats<scalar_t>(p, workers);
-    std::vector<ForwardScratch<scalar_t>> scratch(static_cast<size_t>(workers));
+    std::vector<ForwardScratch> scratch(static_cast<size_t>(workers));
     parallel_items(p.tiles_x * p.tiles_y, workers,
-                   [&](int64_t tile, int64_t w) { forward_tile<scalar_t>(p, splats.data(), tile, out, scratch[w]); });
-    return 0;
+                   [&](int64_t tile, int64_t w) { forward_tile(p, splats.data(), tile, out, scratch[w]); });
+    return kOk;
 }
 
 template <typename scalar_t>
-int backward(const Problem& p, int64_t threads, const BackwardIn<scalar_t>& in, const Gradients<scalar_t>& out) {
+int backward(const Problem& p, int64_t threads, int64_t isa, const BackwardIn<scalar_t>& in,
+             const Gradients<scalar_t>& out) {
+    ForwardTileFn<scalar_t> unused;
+    BackwardTileFn<scalar_t> backward_tile;
+    if (!pick_tile_passes<scalar_t>(isa, unused, backward_tile)) return kIsaUnavailable;
     const int64_t workers = std::max<int64_t>(1, threads);
     const int64_t M = p.offsets[p.tiles_x * p.tiles_y];
-    std::vector<scalar_t> slots(static_cast<size_t>(M * (kSlotFixed + p.channels)), scalar_t(0));
+    // Every slot is written by its tile (zeros where the Gaussian contributes nothing).
+    std::unique_ptr<scalar_t[]> slots(new scalar_t[static_cast<size_t>(M * (kSlotFixed + p.channels))]);
     const std::vector<Splat<scalar_t>> splats = prepare_splats<scalar_t>(p, workers);
-    std::vector<BackwardScratch<scalar_t>> scratch(static_cast<size_t>(workers));
+    std::vector<BackwardScratch> scratch(static_cast<size_t>(workers));
     parallel_items(p.tiles_x * p.tiles_y, workers, [&](int64_t tile, int64_t w) {
-        backward_tile<scalar_t>(p, splats.data(), tile, in, slots.data(), scratch[w]);
+        backward_tile(p, splats.data(), tile, in, slots.get(), scratch[w]);
     });
-    reduce_slots<scalar_t>(p, slots.data(), workers, out);
-    return 0;
+    reduce_slots<scalar_t>(p, slots.get(), workers, out);
+    return kOk;
 }
 
 // C entry points return 0 on success and a non-zero code on failure (no exception may cross).
@@ -573,9 +1085,9 @@ int guarded(F&& f) {
     try {
         return f();
     } catch (const std::bad_alloc&) {
-        return 2;
+        return kOutOfMemory;
     } catch (...) {
-        return 3;
+        return kFailed;
     }
 }
 
@@ -585,18 +1097,18 @@ int guarded(F&& f) {
     extern "C" int rk_forward_##SUFFIX(const SCALAR* means2d, const SCALAR* conics, const SCALAR* opacities,    \
                                        const SCALAR* features, const int32_t* radii, int64_t n, int64_t c,      \
                                        const int64_t* offsets, const int64_t* ids, int64_t width,               \
-                                       int64_t height, int64_t tile_size, int64_t threads, SCALAR* image,       \
-                                       SCALAR* alpha, double* transmittance, int32_t* last) {                   \
+                                       int64_t height, int64_t tile_size, int64_t threads, int64_t isa,         \
+                                       SCALAR* image, SCALAR* alpha, double* transmittance, int32_t* last) {    \
         return guarded([&] {                                                                                    \
             const Problem p = make_problem(means2d, conics, opacities, features, radii, n, c, offsets, ids,      \
                                            width, height, tile_size);                                           \
-            return forward<SCALAR>(p, threads, ForwardOut<SCALAR>{image, alpha, transmittance, last});          \
+            return forward<SCALAR>(p, threads, isa, ForwardOut<SCALAR>{image, alpha, transmittance, last});     \
         });                                                                                                     \
     }                                                                                                           \
     extern "C" int rk_backward_##SUFFIX(const SCALAR* means2d, const SCALAR* conics, const SCALAR* opacities,   \
                                         const SCALAR* features, const int32_t* radii, int64_t n, int64_t c,     \
                                         const int64_t* offsets, const int64_t* ids, int64_t width,              \
-                                        int64_t height, int64_t tile_size, int64_t threads,                     \
+                                        int64_t height, int64_t tile_size, int64_t threads, int64_t isa,        \
                                         const double* transmittance, const int32_t* last,                       \
                                         const SCALAR* grad_image, const SCALAR* grad_alpha,                     \
                                         SCALAR* grad_means2d, SCALAR* grad_conics, SCALAR* grad_opacities,      \
@@ -604,7 +1116,8 @@ int guarded(F&& f) {
         return guarded([&] {                                                                                    \
             const Problem p = make_problem(means2d, conics, opacities, features, radii, n, c, offsets, ids,      \
                                            width, height, tile_size);                                           \
-            return backward<SCALAR>(p, threads, BackwardIn<SCALAR>{transmittance, last, grad_image, grad_alpha}, \
+            return backward<SCALAR>(p, threads, isa,                                                            \
+                                    BackwardIn<SCALAR>{transmittance, last, grad_image, grad_alpha},            \
                                     Gradients<SCALAR>{grad_means2d, grad_conics, grad_opacities, grad_features}); \
         });                                                                                                     \
     }
@@ -634,3 +1147,46 @@ RK_ENTRY_POINTS(f32, float)
 RK_ENTRY_POINTS(f64, double)
 
 extern "C" int rk_abi_version() { return kAbiVersion; }
+
+// 1 when this CPU can run the given variant (kIsaPortable, kIsaAvx2), else 0.
+extern "C" int rk_isa_supported(int64_t isa) {
+    if (isa == kIsaPortable) return 1;
+    if (isa == kIsaAvx2) return avx2_supported() ? 1 : 0;
+    return 0;
+}
+
+#if RK_HAVE_AVX2
+namespace {
+__attribute__((target("avx2"), flatten)) void exp_neg_avx2(const float* sigma, float* out) {
+    _mm256_storeu_ps(out, avx2::Ops::exp_neg(avx2::Ops::load(sigma), avx2::Ops::span(0, kLanes - 1)).v);
+}
+}  // namespace
+#endif
+
+// The compositor's exp(x) for float32 (x in [-87, 0]) with a given variant, and the C library's
+// expf, over n values: lets the tests check that the two agree bitwise.
+extern "C" int rk_exp_f32(const float* x, float* out, int64_t n, int64_t isa) {
+    if (isa != kIsaPortable && !(isa == kIsaAvx2 && avx2_supported())) return kIsaUnavailable;
+    float xs[kLanes], rs[kLanes];
+    for (int64_t i = 0; i < n; i += kLanes) {
+        const int64_t m = std::min<int64_t>(kLanes, n - i);
+        for (int l = 0; l < kLanes; ++l) xs[l] = l < m ? -x[i + l] : 0.0f;  // exp_neg takes sigma = -x
+        if (isa == kIsaPortable) {
+            portable::Vec<float> v;
+            std::memcpy(v.v, xs, sizeof xs);
+            const portable::Vec<float> r = portable::Ops::exp_neg(v, portable::Ops::span(0, kLanes - 1));
+            std::memcpy(rs, r.v, sizeof rs);
+        }
+#if RK_HAVE_AVX2
+        else {
+            exp_neg_avx2(xs, rs);
+        }
+#endif
+        for (int64_t l = 0; l < m; ++l) out[i + l] = rs[l];
+    }
+    return kOk;
+}
+
+extern "C" void rk_libm_expf(const float* x, float* out, int64_t n) {
+    for (int64_t i = 0; i < n; ++i) out[i] = std::exp(x[i]);
+}
