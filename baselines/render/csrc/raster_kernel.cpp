@@ -129,53 +129,47 @@ constexpr double kSigmaRoundingBound = 1e-5;
 
 // ---- exp for float lanes -----------------------------------------------------------------------
 //
-// exp(x) for x in [-87, 0] in double: x = k ln2 + r, |r| <= ln2 / 2, exp(r) by its Taylor series
-// to degree 10 (truncation error < 2.3e-13) evaluated by Estrin's scheme (a shallow dependency
-// chain: the pixel loops are latency-bound), 2^k by adding k to the exponent bits. The result is
-// rounded to float unless it is within kExpMidpointWindow (units of 2^-29 float ulp) of a
-// rounding midpoint: those lanes are recomputed with the C library's expf, which makes the
-// result bitwise equal to expf's (see the header). Both SIMD variants run these exact operations.
+// A float exp for x in [-87, 0] (Cephes' expf: x = k ln2 + r, |r| <= ln2 / 2, a degree-5
+// polynomial, 2^k added to the exponent bits), evaluated with Estrin's scheme for a short
+// dependency chain (the pixel loops are latency-bound). Its error is about 1 ulp, like the Sleef
+// exp torch uses for the reference on the CPU (which itself differs from the C library's expf
+// in about 1% of values). Where the result could move an alpha decision, the tile loops recompute
+// exp with the C library's expf (see `alpha_of`). Both SIMD variants run these exact operations.
 namespace expf_detail {
-constexpr double kInvLn2 = 1.4426950408889634;
-constexpr double kLn2Hi = 6.93147180369123816490e-01;  // fdlibm's split: k * kLn2Hi is exact
-constexpr double kLn2Lo = 1.90821492927058770002e-10;
-constexpr double kShifter = 0x1.8p52;  // adding it rounds to an integer, kept in the low bits
-constexpr double kC2 = 1.0 / 2, kC3 = 1.0 / 6, kC4 = 1.0 / 24, kC5 = 1.0 / 120, kC6 = 1.0 / 720,
-                 kC7 = 1.0 / 5040, kC8 = 1.0 / 40320, kC9 = 1.0 / 362880, kC10 = 1.0 / 3628800;
-constexpr float kLowest = -87.0f;  // exp(-87) is still a normal float
-constexpr int64_t kMidpoint = int64_t(1) << 28;  // half of the 29 bits a double has beyond a float
-constexpr int64_t kExpMidpointWindow = int64_t(1) << 22;
-constexpr int64_t kLowBits = (int64_t(1) << 29) - 1;
+constexpr float kLog2e = 1.44269504088896341f;
+constexpr float kMagic = 12582912.0f;  // 1.5 * 2^23: adding it rounds to an integer in the low bits
+constexpr float kLn2Hi = 0.693359375f;  // 9 significant bits: k * kLn2Hi is exact
+constexpr float kLn2Lo = -2.12194440e-4f;
+constexpr float kP0 = 5.0000001201e-1f, kP1 = 1.6666665459e-1f, kP2 = 4.1665795894e-2f,
+                kP3 = 8.3334519073e-3f, kP4 = 1.3981999507e-3f, kP5 = 1.9875691500e-4f;
+constexpr float kLowest = -87.0f;  // exp(-87) is still a normal float (so are all results)
 
-// exp(r) for |r| <= ln2 / 2; T is double or an AVX2 4-lane double (the same operations either way).
+// The shared arithmetic; T is float or an 8-lane float vector, I the matching int32 type.
 template <typename T, typename Splat>
-RK_INLINE T exp_taylor(T r, Splat c) {
-    const T r2 = r * r, r4 = r2 * r2, r8 = r4 * r4;
-    const T p01 = c(1.0) + r, p23 = c(kC2) + c(kC3) * r, p45 = c(kC4) + c(kC5) * r;
-    const T p67 = c(kC6) + c(kC7) * r, p89 = c(kC8) + c(kC9) * r;
-    const T q0 = p01 + p23 * r2, q1 = p45 + p67 * r2, q2 = p89 + c(kC10) * r2;
-    return (q0 + q1 * r4) + q2 * r8;
+RK_INLINE T exp_poly(T x, T& k, Splat c) {
+    const T t = x * c(kLog2e) + c(kMagic);
+    k = t - c(kMagic);
+    const T r = (x - k * c(kLn2Hi)) - k * c(kLn2Lo);
+    const T z = r * r;
+    const T p = ((c(kP0) + c(kP1) * r) + z * (c(kP2) + c(kP3) * r)) + (z * z) * (c(kP4) + c(kP5) * r);
+    return ((p * z) + r) + c(1.0f);  // exp(r); the caller scales by 2^k
 }
 
-// One lane of the computation (the portable variant; the AVX2 variant repeats it 8-wide).
-RK_INLINE float exp_lane(float x, bool& near_midpoint) {
+RK_INLINE float exp_lane(float x) {
     x = x >= kLowest ? x : kLowest;  // (NaN -> kLowest: only lanes that are masked off get here)
-    x = x <= 0.0f ? x : 0.0f;
-    const double xd = static_cast<double>(x);
-    const double t = xd * kInvLn2 + kShifter;
-    const double k = t - kShifter;
-    const double r = (xd - k * kLn2Hi) - k * kLn2Lo;
-    const double p = exp_taylor(r, [](double v) { return v; });
-    int64_t tb, pb;
-    std::memcpy(&tb, &t, sizeof tb);
-    std::memcpy(&pb, &p, sizeof pb);
-    pb += static_cast<int64_t>(static_cast<uint64_t>(tb) << 52);
-    const int64_t low = pb & kLowBits;
-    near_midpoint = low > kMidpoint - kExpMidpointWindow && low < kMidpoint + kExpMidpointWindow;
-    double result;
-    std::memcpy(&result, &pb, sizeof result);
-    return static_cast<float>(result);
+    float k;
+    const float y = exp_poly(x, k, [](float v) { return v; });
+    int32_t yb;
+    std::memcpy(&yb, &y, sizeof yb);
+    yb += static_cast<int32_t>(static_cast<uint32_t>(static_cast<int32_t>(k)) << 23);
+    float result;
+    std::memcpy(&result, &yb, sizeof result);
+    return result;
 }
+
+// Half-width of the band around the alpha thresholds (relative) in which o exp(-sigma) is
+// recomputed with the C library's expf: 2^-18 is 32 float ulp, far beyond the fast exp's error.
+constexpr float kThresholdBand = 1.0f / 262144.0f;
 }  // namespace expf_detail
 
 // ---- 8-lane operations, portable variant --------------------------------------------------------
@@ -212,6 +206,8 @@ RK_INLINE Mask le(Vec<T> a, Vec<T> b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] <= 
 RK_INLINE Mask lt(Mask a, Mask b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] < b.v[l] ? -1 : 0; return r; }
 template <typename T>
 RK_INLINE Vec<T> select(Mask m, Vec<T> a, Vec<T> b) { Vec<T> r; RK_EACH_LANE r.v[l] = m.v[l] ? a.v[l] : b.v[l]; return r; }
+template <typename T>
+RK_INLINE Vec<T> masked(Mask m, Vec<T> a) { Vec<T> r; RK_EACH_LANE r.v[l] = m.v[l] ? a.v[l] : T(0); return r; }  // 0 off m
 RK_INLINE bool any(Mask m) { int32_t x = 0; RK_EACH_LANE x |= m.v[l]; return x != 0; }
 RK_INLINE int count(Mask m) { int n = 0; RK_EACH_LANE n += m.v[l] != 0; return n; }
 template <typename T>
@@ -241,14 +237,10 @@ struct Ops {
     static RK_INLINE Vec<T> narrow(D8 a) { Vec<T> r; RK_EACH_LANE r.v[l] = static_cast<T>(a.v[l]); return r; }
     // Lanes whose index lies in [lo, hi].
     static RK_INLINE Mask span(int32_t lo, int32_t hi) { Mask r; RK_EACH_LANE r.v[l] = (l >= lo && l <= hi) ? -1 : 0; return r; }
-    // exp(-sigma) on the active lanes (others: unspecified finite values).
-    static RK_INLINE Vec<float> exp_neg(Vec<float> sigma, Mask active) {
+    // exp(-sigma) by the fast float exp (float32) or std::exp (float64, active lanes only).
+    static RK_INLINE Vec<float> exp_neg(Vec<float> sigma, Mask) {
         Vec<float> r;
-        RK_EACH_LANE {
-            bool near;
-            r.v[l] = expf_detail::exp_lane(-sigma.v[l], near);
-            if (near && active.v[l]) r.v[l] = std::exp(-sigma.v[l]);
-        }
+        RK_EACH_LANE r.v[l] = expf_detail::exp_lane(-sigma.v[l]);
         return r;
     }
     static RK_INLINE Vec<double> exp_neg(Vec<double> sigma, Mask active) {
@@ -256,6 +248,7 @@ struct Ops {
         RK_EACH_LANE r.v[l] = active.v[l] ? std::exp(-sigma.v[l]) : 0.0;
         return r;
     }
+    static RK_INLINE int bits(Mask m) { int b = 0; RK_EACH_LANE b |= (m.v[l] != 0) << l; return b; }
 };
 
 #undef RK_EACH_LANE
@@ -295,6 +288,8 @@ RK_AVX2 I8 lt(I8 a, I8 b) { return {_mm256_cmpgt_epi32(b.v, a.v)}; }
 RK_AVX2 F8 select(I8 m, F8 a, F8 b) { return {_mm256_blendv_ps(b.v, a.v, _mm256_castsi256_ps(m.v))}; }
 RK_AVX2 I8 select(I8 m, I8 a, I8 b) { return {_mm256_blendv_epi8(b.v, a.v, m.v)}; }
 RK_AVX2 D8 select(DM8 m, D8 a, D8 b) { return {_mm256_blendv_pd(b.lo, a.lo, m.lo), _mm256_blendv_pd(b.hi, a.hi, m.hi)}; }
+RK_AVX2 F8 masked(I8 m, F8 a) { return {_mm256_and_ps(_mm256_castsi256_ps(m.v), a.v)}; }  // 0 off m
+RK_AVX2 D8 masked(DM8 m, D8 a) { return {_mm256_and_pd(m.lo, a.lo), _mm256_and_pd(m.hi, a.hi)}; }
 RK_AVX2 bool any(I8 m) { return !_mm256_testz_si256(m.v, m.v); }
 RK_AVX2 int count(I8 m) { return __builtin_popcount(static_cast<unsigned>(_mm256_movemask_ps(_mm256_castsi256_ps(m.v)))); }
 RK_AVX2 D8 widen(F8 a) {
@@ -304,29 +299,6 @@ RK_AVX2 double hsum(D8 a) {  // the order of portable::hsum
     const __m256d t = _mm256_add_pd(a.lo, a.hi);                                   // t0 t1 t2 t3
     const __m128d u = _mm_add_pd(_mm256_castpd256_pd128(t), _mm256_extractf128_pd(t, 1));  // t0+t2, t1+t3
     return _mm_cvtsd_f64(_mm_add_sd(u, _mm_unpackhi_pd(u, u)));
-}
-
-// 4 double lanes with the arithmetic operators exp_taylor needs.
-struct Pd4 {
-    __m256d v;
-};
-RK_AVX2 Pd4 operator+(Pd4 a, Pd4 b) { return {_mm256_add_pd(a.v, b.v)}; }
-RK_AVX2 Pd4 operator*(Pd4 a, Pd4 b) { return {_mm256_mul_pd(a.v, b.v)}; }
-
-// exp of 4 lanes in double, as expf_detail::exp_lane; returns the result and the midpoint flags.
-RK_AVX2 __m256d exp4(__m256d x, __m256i& near_midpoint) {
-    using namespace expf_detail;
-    const __m256d shifter = _mm256_set1_pd(kShifter);
-    const __m256d t = _mm256_add_pd(_mm256_mul_pd(x, _mm256_set1_pd(kInvLn2)), shifter);
-    const __m256d k = _mm256_sub_pd(t, shifter);
-    const __m256d r = _mm256_sub_pd(_mm256_sub_pd(x, _mm256_mul_pd(k, _mm256_set1_pd(kLn2Hi))),
-                                    _mm256_mul_pd(k, _mm256_set1_pd(kLn2Lo)));
-    const __m256d p = exp_taylor(Pd4{r}, [](double v) __attribute__((target("avx2"))) { return Pd4{_mm256_set1_pd(v)}; }).v;
-    const __m256i bits = _mm256_add_epi64(_mm256_castpd_si256(p), _mm256_slli_epi64(_mm256_castpd_si256(t), 52));
-    const __m256i low = _mm256_and_si256(bits, _mm256_set1_epi64x(kLowBits));
-    near_midpoint = _mm256_and_si256(_mm256_cmpgt_epi64(low, _mm256_set1_epi64x(kMidpoint - kExpMidpointWindow)),
-                                     _mm256_cmpgt_epi64(_mm256_set1_epi64x(kMidpoint + kExpMidpointWindow), low));
-    return _mm256_castsi256_pd(bits);
 }
 
 struct Ops {
@@ -344,6 +316,8 @@ struct Ops {
     static RK_AVX2 F8 load(const float* p) { return {_mm256_loadu_ps(p)}; }
     static RK_AVX2 I8 load(const int32_t* p) { return {_mm256_loadu_si256(reinterpret_cast<const __m256i*>(p))}; }
     static RK_AVX2 D8 load(const double* p) { return {_mm256_loadu_pd(p), _mm256_loadu_pd(p + 4)}; }
+    static RK_AVX2 void store(float* p, F8 a) { _mm256_storeu_ps(p, a.v); }
+    static RK_AVX2 int bits(I8 m) { return _mm256_movemask_ps(_mm256_castsi256_ps(m.v)); }
     static RK_AVX2 void store(int32_t* p, I8 a) { _mm256_storeu_si256(reinterpret_cast<__m256i*>(p), a.v); }
     static RK_AVX2 void store(double* p, D8 a) { _mm256_storeu_pd(p, a.lo); _mm256_storeu_pd(p + 4, a.hi); }
     static RK_AVX2 DM8 dmask(I8 m) {
@@ -360,27 +334,13 @@ struct Ops {
                                                 _mm256_cmpgt_epi32(lane, _mm256_set1_epi32(hi)));
         return {_mm256_andnot_si256(outside, _mm256_set1_epi32(-1))};
     }
-    static RK_AVX2 F8 exp_neg(F8 sigma, I8 active) {
+    static RK_AVX2 F8 exp_neg(F8 sigma, I8) {
         using namespace expf_detail;
-        __m256 x = _mm256_sub_ps(_mm256_setzero_ps(), sigma.v);
-        x = _mm256_blendv_ps(_mm256_set1_ps(kLowest), x, _mm256_cmp_ps(x, _mm256_set1_ps(kLowest), _CMP_GE_OQ));
-        x = _mm256_blendv_ps(_mm256_setzero_ps(), x, _mm256_cmp_ps(x, _mm256_setzero_ps(), _CMP_LE_OQ));
-        __m256i near_lo, near_hi;
-        const __m256d lo = exp4(_mm256_cvtps_pd(_mm256_castps256_ps128(x)), near_lo);
-        const __m256d hi = exp4(_mm256_cvtps_pd(_mm256_extractf128_ps(x, 1)), near_hi);
-        __m256 result = _mm256_insertf128_ps(_mm256_castps128_ps256(_mm256_cvtpd_ps(lo)), _mm256_cvtpd_ps(hi), 1);
-        const int near = _mm256_movemask_pd(_mm256_castsi256_pd(near_lo)) |
-                         (_mm256_movemask_pd(_mm256_castsi256_pd(near_hi)) << 4);
-        const int fix = near & _mm256_movemask_ps(_mm256_castsi256_ps(active.v));
-        if (fix) {
-            alignas(32) float xs[kLanes], rs[kLanes];
-            _mm256_store_ps(xs, x);
-            _mm256_store_ps(rs, result);
-            for (int l = 0; l < kLanes; ++l)
-                if (fix & (1 << l)) rs[l] = std::exp(xs[l]);
-            result = _mm256_load_ps(rs);
-        }
-        return {result};
+        const __m256 x = _mm256_max_ps(_mm256_xor_ps(sigma.v, _mm256_set1_ps(-0.0f)), _mm256_set1_ps(kLowest));
+        F8 k;
+        const F8 y = exp_poly(F8{x}, k, [](float v) __attribute__((target("avx2"))) { return F8{_mm256_set1_ps(v)}; });
+        const __m256i scale = _mm256_slli_epi32(_mm256_cvttps_epi32(k.v), 23);
+        return {_mm256_castsi256_ps(_mm256_add_epi32(_mm256_castps_si256(y.v), scale))};
     }
 };
 
@@ -562,17 +522,126 @@ void parallel_items(int64_t n, int64_t threads, const std::function<void(int64_t
     if (error) std::rethrow_exception(error);
 }
 
-// The 8-pixel chunks of the image columns [jlo, jhi] of one tile row: RK_FOR_EACH_CHUNK binds
-// `start` (the tile-local column of lane 0) and `lanes` (the mask of the chunk's lanes inside
-// [jlo, jhi]) for the loop body. A span of up to 8 pixels is one chunk; chunks never leave the
-// row buffer. (A macro rather than a function taking a lambda: a lambda body would be compiled
-// as a function of its own, outside the AVX2 target of the caller.)
-#define RK_FOR_EACH_CHUNK(Ops, p, r, jlo, jhi, start, lanes)                                        \
-    for (int64_t rk_hi_ = (jhi) - (r).x0, rk_from_ = (jlo) - (r).x0,                                   \
-                 start = std::min(rk_from_, (p).row_stride - kLanes);                                  \
-         rk_from_ <= rk_hi_; rk_from_ = start + kLanes, start = std::min(rk_from_, (p).row_stride - kLanes)) \
-        if (const auto lanes = Ops::span(static_cast<int32_t>(rk_from_ - start), static_cast<int32_t>(rk_hi_ - start)); \
-            true)
+// ---- Per-tile blocks of Gaussians --------------------------------------------------------------
+//
+// The tile passes first gather a block of the tile's list entries into small local arrays (the
+// Gaussians' parameters and features, read once from the scattered per-Gaussian arrays, with
+// independent loads whose cache misses overlap) and solve the row spans of each entry into a flat
+// list of 8-pixel chunks. The SIMD loop then runs over that list with everything in L1 and no
+// per-row scalar work on its dependency chain.
+
+constexpr int64_t kBlockEntries = 32;
+
+// 8 pixels of one tile row: tile-local row, column of lane 0, and the lanes [lo, hi] to visit.
+struct Chunk {
+    int32_t entry;  // index in the block
+    int32_t row;
+    int32_t start;
+    int16_t lo, hi;
+};
+
+template <typename scalar_t>
+struct Block {
+    int64_t size = 0;                        // entries
+    std::vector<scalar_t> mx, my, a, b, c, o, cut;
+    std::vector<int64_t> k;                  // index in the tile lists (position, slot)
+    std::vector<scalar_t> feature;           // [entries][C]
+    std::vector<int64_t> chunk_begin;        // [entries + 1] into chunks
+    std::vector<Chunk> chunks;
+
+    void reserve(int64_t channels, int64_t tile_size) {
+        for (auto* v : {&mx, &my, &a, &b, &c, &o, &cut}) v->resize(kBlockEntries);
+        k.resize(kBlockEntries);
+        feature.resize(kBlockEntries * channels);
+        chunk_begin.resize(kBlockEntries + 1);
+        chunks.reserve(static_cast<size_t>(kBlockEntries * tile_size * ((tile_size + kLanes - 1) / kLanes + 1)));
+    }
+    void clear() {
+        size = 0;
+        chunks.clear();
+        chunk_begin[0] = 0;
+    }
+};
+
+// Appends list entry k (Gaussian splats[ids[k]]) to the block with its chunks; false when it
+// cannot touch a pixel of the tile (then nothing is appended).
+template <typename scalar_t>
+inline bool gather_entry(const Problem& p, const Splat<scalar_t>* splats, const TileRect& r, int64_t k,
+                         Block<scalar_t>& blk) {
+    const Splat<scalar_t>& g = splats[p.gaussian_ids[k]];
+    if (g.never) return false;
+    const Footprint fp = clip(g, r);
+    if (fp.empty()) return false;
+    const int64_t e = blk.size;
+    const size_t first_chunk = blk.chunks.size();
+    const int64_t last_start = p.row_stride - kLanes;
+    for (int64_t i = fp.ilo; i <= fp.ihi; ++i) {
+        const scalar_t dy = (static_cast<scalar_t>(i) + static_cast<scalar_t>(0.5)) - g.my;
+        int64_t jlo, jhi;
+        if (!row_span(g, fp, static_cast<double>(dy), jlo, jhi)) continue;
+        const int64_t hi = jhi - r.x0;
+        for (int64_t from = jlo - r.x0; from <= hi;) {
+            const int64_t start = std::min(from, last_start);
+            blk.chunks.push_back(Chunk{static_cast<int32_t>(e), static_cast<int32_t>(i - r.y0),
+                                       static_cast<int32_t>(start), static_cast<int16_t>(from - start),
+                                       static_cast<int16_t>(std::min<int64_t>(hi - start, kLanes - 1))});
+            from = start + kLanes;
+        }
+    }
+    if (blk.chunks.size() == first_chunk) return false;
+    blk.mx[e] = g.mx;
+    blk.my[e] = g.my;
+    blk.a[e] = g.a;
+    blk.b[e] = g.b;
+    blk.c[e] = g.c;
+    blk.o[e] = g.o;
+    blk.cut[e] = g.cut;
+    blk.k[e] = k;
+    scalar_t* f = blk.feature.data() + e * p.channels;
+    for (int64_t j = 0; j < p.channels; ++j) f[j] = g.feature[j];  // (a call to memmove costs more)
+    blk.size = e + 1;
+    blk.chunk_begin[e + 1] = static_cast<int64_t>(blk.chunks.size());
+    return true;
+}
+
+// Pixel centres x of each chunk start: (float(x0 + start) + lane) + 0.5 (exact integers, so the
+// value is float(j) + 0.5 as in the reference), [start][lane].
+template <typename scalar_t>
+void pixel_columns(const Problem& p, const TileRect& r, std::vector<scalar_t>& px) {
+    px.resize(static_cast<size_t>(p.row_stride * kLanes));
+    for (int64_t start = 0; start + kLanes <= p.row_stride; ++start)
+        for (int l = 0; l < kLanes; ++l)
+            px[start * kLanes + l] = static_cast<scalar_t>(r.x0 + start + l) + static_cast<scalar_t>(0.5);
+}
+
+// vis = exp(-sigma) and raw = o vis on the lanes m. For float32 the fast exp is used, except
+// where raw falls within a relative band of 2^-18 around 1/255 or 0.999: there exp is recomputed
+// with the C library's expf, so the skip and clamp decisions are those of an exact expf (the fast
+// exp's ~1 ulp error cannot move raw across a threshold from outside the band).
+template <typename Ops, typename scalar_t, typename V, typename M>
+RK_INLINE V alpha_raw(V sigma, V o, M m, V& vis) {
+    vis = Ops::exp_neg(sigma, m);
+    V raw = o * vis;
+    if constexpr (std::is_same<scalar_t, float>::value) {
+        using R = Rules<float>;
+        constexpr float lo = 1.0f - expf_detail::kThresholdBand, hi = 1.0f + expf_detail::kThresholdBand;
+        const M near = m & ((ge(raw, Ops::template splat<float>(R::alpha_min * lo)) &
+                             le(raw, Ops::template splat<float>(R::alpha_min * hi))) |
+                            (ge(raw, Ops::template splat<float>(R::alpha_max * lo)) &
+                             le(raw, Ops::template splat<float>(R::alpha_max * hi))));
+        if (any(near)) {
+            float sig[kLanes], v[kLanes];
+            Ops::store(sig, sigma);
+            Ops::store(v, vis);
+            const int b = Ops::bits(near);
+            for (int l = 0; l < kLanes; ++l)
+                if (b & (1 << l)) v[l] = std::exp(-sig[l]);
+            vis = Ops::load(static_cast<const float*>(v));
+            raw = o * vis;
+        }
+    }
+    return raw;
+}
 
 // ---- Forward ---------------------------------------------------------------------------------
 
@@ -584,14 +653,19 @@ struct ForwardOut {
     int32_t* last;         // [H, W] 1 + position in the tile list of the last contributor (0: none)
 };
 
+template <typename scalar_t>
 struct ForwardScratch {  // tile-local, row stride Problem::row_stride
     std::vector<double> T, accum;  // accum: [C][pixels]
     std::vector<int32_t> last, done;
+    std::vector<scalar_t> px;
+    Block<scalar_t> block;
 };
 
+// Masked-off lanes take alpha = 0 rather than a blend: T * (1 - 0) = T and sum + f * 0 = sum are
+// exact, so their state is unchanged bit for bit.
 template <typename Ops, typename scalar_t>
 inline void forward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, int64_t tile,
-                                 const ForwardOut<scalar_t>& out, ForwardScratch& s) {
+                              const ForwardOut<scalar_t>& out, ForwardScratch<scalar_t>& s) {
     using V = typename Ops::template V<scalar_t>;
     using D = typename Ops::D;
     using M = typename Ops::M;
@@ -603,58 +677,57 @@ inline void forward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, i
     s.accum.assign(n * C, 0.0);
     s.last.assign(n, 0);
     s.done.assign(n, 0);
+    pixel_columns(p, r, s.px);
+    Block<scalar_t>& blk = s.block;
+    blk.reserve(C, p.tile_size);
     int64_t alive = r.rows() * r.width();
     const V half = Ops::template splat<scalar_t>(0.5), zero = Ops::template splat<scalar_t>(0);
     const V one = Ops::template splat<scalar_t>(1), alpha_min = Ops::template splat<scalar_t>(R::alpha_min);
     const V alpha_max = Ops::template splat<scalar_t>(R::alpha_max);
     const V t_min = Ops::template splat<scalar_t>(R::transmittance_min);
-    const V lane = Ops::template lane_index<scalar_t>();
     const int64_t begin = p.offsets[tile];
     const int64_t end = p.offsets[tile + 1];
-    for (int64_t k = begin; k < end && alive > 0; ++k) {
-        if (k + 4 < end) __builtin_prefetch(&splats[p.gaussian_ids[k + 4]]);
-        const Splat<scalar_t>& g = splats[p.gaussian_ids[k]];
-        if (g.never) continue;
-        const Footprint fp = clip(g, r);
-        if (fp.empty()) continue;
-        const M position = Ops::splat(static_cast<int32_t>(k - begin + 1));
-        const V mx = Ops::template splat<scalar_t>(g.mx), a = Ops::template splat<scalar_t>(g.a);
-        const V b = Ops::template splat<scalar_t>(g.b), o = Ops::template splat<scalar_t>(g.o);
-        const V cut = Ops::template splat<scalar_t>(g.cut);
-        for (int64_t i = fp.ilo; i <= fp.ihi; ++i) {
-            const scalar_t dy_s = (static_cast<scalar_t>(i) + static_cast<scalar_t>(0.5)) - g.my;
-            int64_t jlo, jhi;
-            if (!row_span(g, fp, static_cast<double>(dy_s), jlo, jhi)) continue;
-            const V dy = Ops::template splat<scalar_t>(dy_s);
-            const V c_dy_dy = Ops::template splat<scalar_t>(g.c * dy_s * dy_s);
-            const int64_t row = (i - r.y0) * p.row_stride;
-            RK_FOR_EACH_CHUNK(Ops, p, r, jlo, jhi, start, lanes) {
-                const int64_t q = row + start;
-                M m = and_not(lanes, Ops::load(s.done.data() + q));
-                const V px = (Ops::template splat<scalar_t>(static_cast<scalar_t>(r.x0 + start)) + lane) + half;
-                const V dx = px - mx;
-                const V sigma = half * (a * dx * dx + c_dy_dy) + b * dx * dy;
+    for (int64_t next = begin; next < end && alive > 0;) {
+        blk.clear();
+        for (; next < end && blk.size < kBlockEntries; ++next) gather_entry(p, splats, r, next, blk);
+        for (int64_t e = 0; e < blk.size && alive > 0; ++e) {
+            const M position = Ops::splat(static_cast<int32_t>(blk.k[e] - begin + 1));
+            const V mx = Ops::template splat<scalar_t>(blk.mx[e]), a = Ops::template splat<scalar_t>(blk.a[e]);
+            const V b = Ops::template splat<scalar_t>(blk.b[e]), o = Ops::template splat<scalar_t>(blk.o[e]);
+            const V cut = Ops::template splat<scalar_t>(blk.cut[e]);
+            const scalar_t my = blk.my[e], c = blk.c[e];
+            const scalar_t* f = blk.feature.data() + e * C;
+            for (int64_t ci = blk.chunk_begin[e]; ci < blk.chunk_begin[e + 1]; ++ci) {
+                const Chunk& ch = blk.chunks[ci];
+                const int64_t q = ch.row * p.row_stride + ch.start;
+                M m = and_not(Ops::span(ch.lo, ch.hi), Ops::load(s.done.data() + q));
+                const scalar_t dy_s = (static_cast<scalar_t>(r.y0 + ch.row) + static_cast<scalar_t>(0.5)) - my;
+                const V dy = Ops::template splat<scalar_t>(dy_s);
+                const V dx = Ops::load(s.px.data() + ch.start * kLanes) - mx;
+                const V sigma = half * (a * dx * dx + Ops::template splat<scalar_t>(c * dy_s * dy_s)) + b * dx * dy;
                 m = m & ge(sigma, zero) & le(sigma, cut);
                 if (!any(m)) continue;
-                const V raw = o * Ops::exp_neg(sigma, m);
-                const V alpha = select(le(raw, alpha_max), raw, alpha_max);
+                V vis;
+                const V raw = alpha_raw<Ops, scalar_t>(sigma, o, m, vis);
+                V alpha = select(le(raw, alpha_max), raw, alpha_max);
                 m = m & ge(alpha, alpha_min);
+                alpha = masked(m, alpha);
                 const D T = Ops::load(s.T.data() + q);
-                const D next_T = T * widen(one - alpha);
+                D next_T = T * widen(one - alpha);
                 const M stop = m & le(Ops::template narrow<scalar_t>(next_T), t_min);
-                if (any(stop)) {
+                if (any(stop)) {  // these pixels end before this Gaussian
                     Ops::store(s.done.data() + q, Ops::load(s.done.data() + q) | stop);
                     alive -= count(stop);
                     m = and_not(m, stop);
+                    alpha = masked(m, alpha);
+                    next_T = T * widen(one - alpha);
                 }
-                const auto md = Ops::dmask(m);
-                const V w = alpha * Ops::template narrow<scalar_t>(T);
-                for (int64_t ch = 0; ch < C; ++ch) {
-                    double* acc = s.accum.data() + ch * n + q;
-                    const D before = Ops::load(acc);
-                    Ops::store(acc, select(md, before + widen(Ops::template splat<scalar_t>(g.feature[ch]) * w), before));
+                const D w = widen(alpha * Ops::template narrow<scalar_t>(T));
+                for (int64_t j = 0; j < C; ++j) {
+                    double* acc = s.accum.data() + j * n + q;
+                    Ops::store(acc, Ops::load(acc) + Ops::splat(static_cast<double>(f[j])) * w);
                 }
-                Ops::store(s.T.data() + q, select(md, next_T, T));
+                Ops::store(s.T.data() + q, next_T);
                 Ops::store(s.last.data() + q, select(m, position, Ops::load(s.last.data() + q)));
             }
         }
@@ -681,6 +754,7 @@ struct BackwardIn {
     const scalar_t* grad_alpha;  // [H, W]
 };
 
+template <typename scalar_t>
 struct BackwardScratch {  // tile-local, row stride Problem::row_stride
     std::vector<double> T;            // transmittance behind the current Gaussian
     std::vector<double> behind;       // S: sum over Gaussians behind of w <g_image, f>
@@ -688,6 +762,8 @@ struct BackwardScratch {  // tile-local, row stride Problem::row_stride
     std::vector<double> g_image;      // [C][pixels]
     std::vector<int32_t> last;
     std::vector<double> g_feature;    // [C][kLanes] per-lane sums of the current Gaussian
+    std::vector<scalar_t> px;
+    Block<scalar_t> block;
 };
 
 // Slot layout per intersection: [means2d x, y | conic a, b, c | opacity | features 0..C-1].
@@ -695,7 +771,7 @@ constexpr int64_t kSlotFixed = 6;
 
 template <typename Ops, typename scalar_t>
 inline void backward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, int64_t tile,
-                                  const BackwardIn<scalar_t>& in, scalar_t* slots, BackwardScratch& s) {
+                               const BackwardIn<scalar_t>& in, scalar_t* slots, BackwardScratch<scalar_t>& s) {
     using V = typename Ops::template V<scalar_t>;
     using D = typename Ops::D;
     using M = typename Ops::M;
@@ -704,12 +780,19 @@ inline void backward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, 
     const int64_t n = r.rows() * p.row_stride;
     const int64_t C = p.channels;
     const int64_t stride = kSlotFixed + C;
+    const int64_t begin = p.offsets[tile];
+    const int64_t end = p.offsets[tile + 1];
+    // Every slot of the tile is written: zero unless its Gaussian reaches a pixel.
+    std::fill(slots + begin * stride, slots + end * stride, scalar_t(0));
     s.T.assign(n, 1.0);
     s.behind.assign(n, 0.0);
     s.g_alpha_T.assign(n, 0.0);
     s.g_image.assign(n * C, 0.0);
     s.last.assign(n, 0);
     s.g_feature.resize(C * kLanes);
+    pixel_columns(p, r, s.px);
+    Block<scalar_t>& blk = s.block;
+    blk.reserve(C, p.tile_size);
     int32_t max_last = 0;
     for (int64_t i = r.y0; i < r.y1; ++i) {
         for (int64_t j = r.x0; j < r.x1; ++j) {
@@ -727,103 +810,84 @@ inline void backward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, 
     const V half = Ops::template splat<scalar_t>(0.5), zero = Ops::template splat<scalar_t>(0);
     const V one = Ops::template splat<scalar_t>(1), alpha_min = Ops::template splat<scalar_t>(R::alpha_min);
     const V alpha_max = Ops::template splat<scalar_t>(R::alpha_max);
-    const V lane = Ops::template lane_index<scalar_t>();
     const D one_d = Ops::splat(1.0), zero_d = Ops::splat(0.0);
-    const int64_t begin = p.offsets[tile];
-    const int64_t end = p.offsets[tile + 1];
-    for (int64_t k = end - 1; k >= begin + max_last; --k) std::fill(slots + k * stride, slots + (k + 1) * stride, scalar_t(0));
-    for (int64_t k = begin + max_last - 1; k >= begin; --k) {
-        if (k - 4 >= begin) __builtin_prefetch(&splats[p.gaussian_ids[k - 4]]);
-        const Splat<scalar_t>& g = splats[p.gaussian_ids[k]];
-        scalar_t* slot = slots + k * stride;
-        std::fill(slot, slot + stride, scalar_t(0));
-        if (g.never) continue;
-        const Footprint fp = clip(g, r);
-        if (fp.empty()) continue;
-        const M position = Ops::splat(static_cast<int32_t>(k - begin));
-        const V mx = Ops::template splat<scalar_t>(g.mx), a = Ops::template splat<scalar_t>(g.a);
-        const V b = Ops::template splat<scalar_t>(g.b), o = Ops::template splat<scalar_t>(g.o);
-        const V cut = Ops::template splat<scalar_t>(g.cut);
-        const D minus_o = Ops::splat(-static_cast<double>(g.o));
-        std::fill(s.g_feature.begin(), s.g_feature.end(), 0.0);
-        // Per-lane sums over the tile of g_o, and of g_sigma times dx^2, dx dy, dy^2, dx, dy.
-        D sum_o = zero_d, sum_xx = zero_d, sum_xy = zero_d, sum_yy = zero_d, sum_x = zero_d, sum_y = zero_d;
-        bool touched = false;
-        for (int64_t i = fp.ilo; i <= fp.ihi; ++i) {
-            const scalar_t dy_s = (static_cast<scalar_t>(i) + static_cast<scalar_t>(0.5)) - g.my;
-            int64_t jlo, jhi;
-            if (!row_span(g, fp, static_cast<double>(dy_s), jlo, jhi)) continue;
-            const V dy = Ops::template splat<scalar_t>(dy_s);
-            const V c_dy_dy = Ops::template splat<scalar_t>(g.c * dy_s * dy_s);
-            const int64_t row = (i - r.y0) * p.row_stride;
-            // This row's per-lane sums of g_sigma, g_sigma dx, g_sigma dx^2 (dy is constant).
-            D row_s = zero_d, row_sx = zero_d, row_sxx = zero_d;
-            bool row_touched = false;
-            RK_FOR_EACH_CHUNK(Ops, p, r, jlo, jhi, start, lanes) {
-                const int64_t q = row + start;
-                M m = lanes & lt(position, Ops::load(s.last.data() + q));  // in front of the last contributor
+    for (int64_t next = begin + max_last - 1; next >= begin;) {
+        blk.clear();
+        for (; next >= begin && blk.size < kBlockEntries; --next) gather_entry(p, splats, r, next, blk);
+        for (int64_t e = 0; e < blk.size; ++e) {
+            const M position = Ops::splat(static_cast<int32_t>(blk.k[e] - begin));
+            const V mx = Ops::template splat<scalar_t>(blk.mx[e]), a = Ops::template splat<scalar_t>(blk.a[e]);
+            const V b = Ops::template splat<scalar_t>(blk.b[e]), o = Ops::template splat<scalar_t>(blk.o[e]);
+            const V cut = Ops::template splat<scalar_t>(blk.cut[e]);
+            const scalar_t my = blk.my[e], c = blk.c[e];
+            const scalar_t* f = blk.feature.data() + e * C;
+            const D minus_o = Ops::splat(-static_cast<double>(blk.o[e]));
+            std::fill(s.g_feature.begin(), s.g_feature.end(), 0.0);
+            // Per-lane sums over the tile of g_o, and of g_sigma times dx^2, dx dy, dy^2, dx, dy.
+            D sum_o = zero_d, sum_xx = zero_d, sum_xy = zero_d, sum_yy = zero_d, sum_x = zero_d, sum_y = zero_d;
+            bool touched = false;
+            for (int64_t ci = blk.chunk_begin[e]; ci < blk.chunk_begin[e + 1]; ++ci) {
+                const Chunk& ch = blk.chunks[ci];
+                const int64_t q = ch.row * p.row_stride + ch.start;
+                M m = Ops::span(ch.lo, ch.hi) & lt(position, Ops::load(s.last.data() + q));  // in front of the last contributor
                 if (!any(m)) continue;
-                const V px = (Ops::template splat<scalar_t>(static_cast<scalar_t>(r.x0 + start)) + lane) + half;
-                const V dx = px - mx;
-                const V sigma = half * (a * dx * dx + c_dy_dy) + b * dx * dy;
+                const scalar_t dy_s = (static_cast<scalar_t>(r.y0 + ch.row) + static_cast<scalar_t>(0.5)) - my;
+                const V dy = Ops::template splat<scalar_t>(dy_s);
+                const V dx = Ops::load(s.px.data() + ch.start * kLanes) - mx;
+                const V sigma = half * (a * dx * dx + Ops::template splat<scalar_t>(c * dy_s * dy_s)) + b * dx * dy;
                 m = m & ge(sigma, zero) & le(sigma, cut);
                 if (!any(m)) continue;
-                const V vis = Ops::exp_neg(sigma, m);
-                const V raw = o * vis;
+                V vis;
+                const V raw = alpha_raw<Ops, scalar_t>(sigma, o, m, vis);
                 const M unclamped = le(raw, alpha_max);  // the clamp at 0.999 passes no gradient
-                const V alpha = select(unclamped, raw, alpha_max);
+                V alpha = select(unclamped, raw, alpha_max);
                 m = m & ge(alpha, alpha_min);
                 if (!any(m)) continue;
-                row_touched = true;
-                const auto md = Ops::dmask(m);
+                touched = true;
+                alpha = masked(m, alpha);  // 0 on masked-off lanes: T, w, S stay exact there
                 const D inv_one_minus = one_d / widen(one - alpha);
                 const D T_behind = Ops::load(s.T.data() + q);
                 const D T = T_behind * inv_one_minus;  // transmittance in front of this Gaussian
-                const D w = select(md, widen(alpha) * T, zero_d);
+                const D w = widen(alpha) * T;
                 // d image / d alpha_i = f_i T_i - (sum_{j>i} f_j w_j) / (1 - alpha_i), dotted with
                 // g_image: front * T - S / (1 - alpha_i).
                 D front = zero_d;
-                for (int64_t ch = 0; ch < C; ++ch) {
-                    const D gc = Ops::load(s.g_image.data() + ch * n + q);
-                    front = front + gc * Ops::splat(static_cast<double>(g.feature[ch]));
-                    double* gf = s.g_feature.data() + ch * kLanes;
+                for (int64_t j = 0; j < C; ++j) {
+                    const D gc = Ops::load(s.g_image.data() + j * n + q);
+                    front = front + gc * Ops::splat(static_cast<double>(f[j]));
+                    double* gf = s.g_feature.data() + j * kLanes;
                     Ops::store(gf, Ops::load(gf) + w * gc);
                 }
                 const D S = Ops::load(s.behind.data() + q);
                 const D g_alpha = front * T + (Ops::load(s.g_alpha_T.data() + q) - S) * inv_one_minus;
-                Ops::store(s.behind.data() + q, select(md, S + w * front, S));
-                Ops::store(s.T.data() + q, select(md, T, T_behind));
-                const auto mu = Ops::dmask(m & unclamped);
-                const D g_vis = g_alpha * widen(vis);  // d loss / d o
-                sum_o = sum_o + select(mu, g_vis, zero_d);
-                const D g_sigma = select(mu, g_vis * minus_o, zero_d);
-                const D dxd = widen(dx);
-                const D t = g_sigma * dxd;
-                row_s = row_s + g_sigma;
-                row_sx = row_sx + t;
-                row_sxx = row_sxx + t * dxd;
+                Ops::store(s.behind.data() + q, S + w * front);
+                Ops::store(s.T.data() + q, T);
+                const D g_vis = masked(Ops::dmask(m & unclamped), g_alpha * widen(vis));  // d loss / d o
+                sum_o = sum_o + g_vis;
+                const D g_sigma = g_vis * minus_o;
+                const D dxd = widen(dx), dyd = Ops::splat(static_cast<double>(dy_s));
+                const D t = g_sigma * dxd, u = g_sigma * dyd;
+                sum_x = sum_x + t;
+                sum_xx = sum_xx + t * dxd;
+                sum_xy = sum_xy + t * dyd;
+                sum_y = sum_y + u;
+                sum_yy = sum_yy + u * dyd;
             }
-            if (!row_touched) continue;
-            touched = true;
-            const D dyd = Ops::splat(static_cast<double>(dy_s));
-            sum_xx = sum_xx + row_sxx;
-            sum_xy = sum_xy + row_sx * dyd;
-            sum_yy = sum_yy + row_s * (dyd * dyd);
-            sum_x = sum_x + row_sx;
-            sum_y = sum_y + row_s * dyd;
+            if (!touched) continue;
+            // sigma = 0.5 (a dx^2 + c dy^2) + b dx dy, dx = px - mx: d sigma / d mx = -(a dx + b dy).
+            scalar_t* slot = slots + blk.k[e] * stride;
+            const double sx = hsum(sum_x), sy = hsum(sum_y);
+            const double ad = static_cast<double>(blk.a[e]), bd = static_cast<double>(blk.b[e]);
+            const double cd = static_cast<double>(c);
+            slot[0] = static_cast<scalar_t>(-(ad * sx + bd * sy));
+            slot[1] = static_cast<scalar_t>(-(bd * sx + cd * sy));
+            slot[2] = static_cast<scalar_t>(0.5 * hsum(sum_xx));
+            slot[3] = static_cast<scalar_t>(hsum(sum_xy));
+            slot[4] = static_cast<scalar_t>(0.5 * hsum(sum_yy));
+            slot[5] = static_cast<scalar_t>(hsum(sum_o));
+            for (int64_t j = 0; j < C; ++j)
+                slot[kSlotFixed + j] = static_cast<scalar_t>(hsum(Ops::load(s.g_feature.data() + j * kLanes)));
         }
-        if (!touched) continue;
-        // sigma = 0.5 (a dx^2 + c dy^2) + b dx dy with dx = px - mx: d sigma / d mx = -(a dx + b dy).
-        const double sx = hsum(sum_x), sy = hsum(sum_y);
-        const double ad = static_cast<double>(g.a), bd = static_cast<double>(g.b), cd = static_cast<double>(g.c);
-        slot[0] = static_cast<scalar_t>(-(ad * sx + bd * sy));
-        slot[1] = static_cast<scalar_t>(-(bd * sx + cd * sy));
-        slot[2] = static_cast<scalar_t>(0.5 * hsum(sum_xx));
-        slot[3] = static_cast<scalar_t>(hsum(sum_xy));
-        slot[4] = static_cast<scalar_t>(0.5 * hsum(sum_yy));
-        slot[5] = static_cast<scalar_t>(hsum(sum_o));
-        for (int64_t ch = 0; ch < C; ++ch)
-            slot[kSlotFixed + ch] = static_cast<scalar_t>(hsum(Ops::load(s.g_feature.data() + ch * kLanes)));
     }
 }
 
@@ -831,30 +895,30 @@ inline void backward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, 
 
 template <typename scalar_t>
 using ForwardTileFn = void (*)(const Problem&, const Splat<scalar_t>*, int64_t, const ForwardOut<scalar_t>&,
-                               ForwardScratch&);
+                               ForwardScratch<scalar_t>&);
 template <typename scalar_t>
 using BackwardTileFn = void (*)(const Problem&, const Splat<scalar_t>*, int64_t, const BackwardIn<scalar_t>&,
-                                scalar_t*, BackwardScratch&);
+                                scalar_t*, BackwardScratch<scalar_t>&);
 
 template <typename scalar_t>
 void forward_tile_portable(const Problem& p, const Splat<scalar_t>* splats, int64_t tile,
-                           const ForwardOut<scalar_t>& out, ForwardScratch& s) {
+                           const ForwardOut<scalar_t>& out, ForwardScratch<scalar_t>& s) {
     forward_tile_impl<portable::Ops, scalar_t>(p, splats, tile, out, s);
 }
 template <typename scalar_t>
 void backward_tile_portable(const Problem& p, const Splat<scalar_t>* splats, int64_t tile,
-                            const BackwardIn<scalar_t>& in, scalar_t* slots, BackwardScratch& s) {
+                            const BackwardIn<scalar_t>& in, scalar_t* slots, BackwardScratch<scalar_t>& s) {
     backward_tile_impl<portable::Ops, scalar_t>(p, splats, tile, in, slots, s);
 }
 
 #if RK_HAVE_AVX2
 __attribute__((target("avx2"), flatten)) void forward_tile_avx2(const Problem& p, const Splat<float>* splats, int64_t tile,
-                                                       const ForwardOut<float>& out, ForwardScratch& s) {
+                                                       const ForwardOut<float>& out, ForwardScratch<float>& s) {
     forward_tile_impl<avx2::Ops, float>(p, splats, tile, out, s);
 }
 __attribute__((target("avx2"), flatten)) void backward_tile_avx2(const Problem& p, const Splat<float>* splats, int64_t tile,
                                                         const BackwardIn<float>& in, float* slots,
-                                                        BackwardScratch& s) {
+                                                        BackwardScratch<float>& s) {
     backward_tile_impl<avx2::Ops, float>(p, splats, tile, in, slots, s);
 }
 #endif
@@ -1054,7 +1118,7 @@ int forward(const Problem& p, int64_t threads, int64_t isa, const ForwardOut<sca
     if (!pick_tile_passes<scalar_t>(isa, forward_tile, unused)) return kIsaUnavailable;
     const int64_t workers = std::max<int64_t>(1, threads);
     const std::vector<Splat<scalar_t>> splats = prepare_splats<scalar_t>(p, workers);
-    std::vector<ForwardScratch> scratch(static_cast<size_t>(workers));
+    std::vector<ForwardScratch<scalar_t>> scratch(static_cast<size_t>(workers));
     parallel_items(p.tiles_x * p.tiles_y, workers,
                    [&](int64_t tile, int64_t w) { forward_tile(p, splats.data(), tile, out, scratch[w]); });
     return kOk;
@@ -1071,7 +1135,7 @@ int backward(const Problem& p, int64_t threads, int64_t isa, const BackwardIn<sc
     // Every slot is written by its tile (zeros where the Gaussian contributes nothing).
     std::unique_ptr<scalar_t[]> slots(new scalar_t[static_cast<size_t>(M * (kSlotFixed + p.channels))]);
     const std::vector<Splat<scalar_t>> splats = prepare_splats<scalar_t>(p, workers);
-    std::vector<BackwardScratch> scratch(static_cast<size_t>(workers));
+    std::vector<BackwardScratch<scalar_t>> scratch(static_cast<size_t>(workers));
     parallel_items(p.tiles_x * p.tiles_y, workers, [&](int64_t tile, int64_t w) {
         backward_tile(p, splats.data(), tile, in, slots.get(), scratch[w]);
     });
