@@ -202,8 +202,11 @@ RK_INLINE Mask and_not(Mask a, Mask b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] & 
 template <typename T>
 RK_INLINE Mask ge(Vec<T> a, Vec<T> b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] >= b.v[l] ? -1 : 0; return r; }
 template <typename T>
+RK_INLINE Mask gt(Vec<T> a, Vec<T> b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] > b.v[l] ? -1 : 0; return r; }
+template <typename T>
 RK_INLINE Mask le(Vec<T> a, Vec<T> b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] <= b.v[l] ? -1 : 0; return r; }
-RK_INLINE Mask lt(Mask a, Mask b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] < b.v[l] ? -1 : 0; return r; }
+template <typename T>
+RK_INLINE Mask lt(Vec<T> a, Vec<T> b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] < b.v[l] ? -1 : 0; return r; }
 template <typename T>
 RK_INLINE Vec<T> select(Mask m, Vec<T> a, Vec<T> b) { Vec<T> r; RK_EACH_LANE r.v[l] = m.v[l] ? a.v[l] : b.v[l]; return r; }
 template <typename T>
@@ -212,6 +215,14 @@ RK_INLINE bool any(Mask m) { int32_t x = 0; RK_EACH_LANE x |= m.v[l]; return x !
 RK_INLINE int count(Mask m) { int n = 0; RK_EACH_LANE n += m.v[l] != 0; return n; }
 template <typename T>
 RK_INLINE D8 widen(Vec<T> a) { D8 r; RK_EACH_LANE r.v[l] = static_cast<double>(a.v[l]); return r; }
+RK_INLINE D8 sqrt(D8 a) { D8 r; RK_EACH_LANE r.v[l] = std::sqrt(a.v[l]); return r; }
+RK_INLINE D8 floor(D8 a) { D8 r; RK_EACH_LANE r.v[l] = std::floor(a.v[l]); return r; }
+RK_INLINE D8 ceil(D8 a) { D8 r; RK_EACH_LANE r.v[l] = std::ceil(a.v[l]); return r; }
+// max / min as x86's maxpd / minpd: the second operand where the first is NaN.
+RK_INLINE D8 max(D8 a, D8 b) { D8 r; RK_EACH_LANE r.v[l] = a.v[l] > b.v[l] ? a.v[l] : b.v[l]; return r; }
+RK_INLINE D8 min(D8 a, D8 b) { D8 r; RK_EACH_LANE r.v[l] = a.v[l] < b.v[l] ? a.v[l] : b.v[l]; return r; }
+// Integral values in int32 range to int32.
+RK_INLINE void store_int32(int32_t* p, D8 a) { RK_EACH_LANE p[l] = static_cast<int32_t>(a.v[l]); }
 // Sum of the 8 lanes in a fixed order (the AVX2 variant adds in the same order).
 RK_INLINE double hsum(D8 a) {
     const double t0 = a.v[0] + a.v[4], t1 = a.v[1] + a.v[5], t2 = a.v[2] + a.v[6], t3 = a.v[3] + a.v[7];
@@ -283,8 +294,10 @@ RK_AVX2 I8 operator|(I8 a, I8 b) { return {_mm256_or_si256(a.v, b.v)}; }
 RK_AVX2 I8 and_not(I8 a, I8 b) { return {_mm256_andnot_si256(b.v, a.v)}; }  // a & ~b
 // Ordered, non-signalling comparisons: false for NaN, like C++'s >= and <=.
 RK_AVX2 I8 ge(F8 a, F8 b) { return {_mm256_castps_si256(_mm256_cmp_ps(a.v, b.v, _CMP_GE_OQ))}; }
+RK_AVX2 I8 gt(F8 a, F8 b) { return {_mm256_castps_si256(_mm256_cmp_ps(a.v, b.v, _CMP_GT_OQ))}; }
 RK_AVX2 I8 le(F8 a, F8 b) { return {_mm256_castps_si256(_mm256_cmp_ps(a.v, b.v, _CMP_LE_OQ))}; }
 RK_AVX2 I8 lt(I8 a, I8 b) { return {_mm256_cmpgt_epi32(b.v, a.v)}; }
+RK_AVX2 DM8 lt(D8 a, D8 b) { return {_mm256_cmp_pd(a.lo, b.lo, _CMP_LT_OQ), _mm256_cmp_pd(a.hi, b.hi, _CMP_LT_OQ)}; }
 RK_AVX2 F8 select(I8 m, F8 a, F8 b) { return {_mm256_blendv_ps(b.v, a.v, _mm256_castsi256_ps(m.v))}; }
 RK_AVX2 I8 select(I8 m, I8 a, I8 b) { return {_mm256_blendv_epi8(b.v, a.v, m.v)}; }
 RK_AVX2 D8 select(DM8 m, D8 a, D8 b) { return {_mm256_blendv_pd(b.lo, a.lo, m.lo), _mm256_blendv_pd(b.hi, a.hi, m.hi)}; }
@@ -294,6 +307,15 @@ RK_AVX2 bool any(I8 m) { return !_mm256_testz_si256(m.v, m.v); }
 RK_AVX2 int count(I8 m) { return __builtin_popcount(static_cast<unsigned>(_mm256_movemask_ps(_mm256_castsi256_ps(m.v)))); }
 RK_AVX2 D8 widen(F8 a) {
     return {_mm256_cvtps_pd(_mm256_castps256_ps128(a.v)), _mm256_cvtps_pd(_mm256_extractf128_ps(a.v, 1))};
+}
+RK_AVX2 D8 sqrt(D8 a) { return {_mm256_sqrt_pd(a.lo), _mm256_sqrt_pd(a.hi)}; }
+RK_AVX2 D8 floor(D8 a) { return {_mm256_floor_pd(a.lo), _mm256_floor_pd(a.hi)}; }
+RK_AVX2 D8 ceil(D8 a) { return {_mm256_ceil_pd(a.lo), _mm256_ceil_pd(a.hi)}; }
+RK_AVX2 D8 max(D8 a, D8 b) { return {_mm256_max_pd(a.lo, b.lo), _mm256_max_pd(a.hi, b.hi)}; }
+RK_AVX2 D8 min(D8 a, D8 b) { return {_mm256_min_pd(a.lo, b.lo), _mm256_min_pd(a.hi, b.hi)}; }
+RK_AVX2 void store_int32(int32_t* p, D8 a) {
+    _mm_storeu_si128(reinterpret_cast<__m128i*>(p), _mm256_cvttpd_epi32(a.lo));
+    _mm_storeu_si128(reinterpret_cast<__m128i*>(p + 4), _mm256_cvttpd_epi32(a.hi));
 }
 RK_AVX2 double hsum(D8 a) {  // the order of portable::hsum
     const __m256d t = _mm256_add_pd(a.lo, a.hi);                                   // t0 t1 t2 t3
@@ -466,27 +488,6 @@ inline Footprint clip(const Splat<scalar_t>& s, const TileRect& r) {
     return f;
 }
 
-// Columns [jlo, jhi] of the footprint row at vertical offset dy (pixel centre - mean) that can
-// pass the sigma cutoff; false when none can. Conservative: one pixel of slack per side, and the
-// whole footprint row when the span cannot be solved.
-template <typename scalar_t>
-RK_INLINE bool row_span(const Splat<scalar_t>& s, const Footprint& fp, double dy, int64_t& jlo, int64_t& jhi) {
-    jlo = fp.jlo;
-    jhi = fp.jhi;
-    if (!s.span_ok) return true;
-    const double disc = s.span_c2a - dy * dy * s.det;
-    if (std::isnan(disc)) return true;
-    if (disc < 0) return false;
-    const double half_width = std::sqrt(disc) * s.inv_a;
-    const double centre = s.centre_x - s.b_over_a * dy;
-    const double lo = std::ceil(centre - half_width) - 1.0;
-    const double hi = std::floor(centre + half_width) + 1.0;
-    if (std::isnan(lo) || std::isnan(hi)) return true;
-    if (lo > static_cast<double>(jlo)) jlo = static_cast<int64_t>(std::min(lo, static_cast<double>(fp.jhi) + 1.0));
-    if (hi < static_cast<double>(jhi)) jhi = static_cast<int64_t>(std::max(hi, static_cast<double>(fp.jlo) - 1.0));
-    return jlo <= jhi;
-}
-
 // Runs fn(item, worker) for item in [0, n) on `threads` workers with a dynamic schedule. An
 // exception in any worker stops the others and is rethrown here after all have joined; if a
 // thread cannot be started, the workers already running finish the items.
@@ -525,72 +526,111 @@ void parallel_items(int64_t n, int64_t threads, const std::function<void(int64_t
 // ---- Per-tile blocks of Gaussians --------------------------------------------------------------
 //
 // The tile passes first gather a block of the tile's list entries into small local arrays (the
-// Gaussians' parameters and features, read once from the scattered per-Gaussian arrays, with
+// Gaussians' parameters and features, read once from the scattered per-Gaussian arrays with
 // independent loads whose cache misses overlap) and solve the row spans of each entry into a flat
-// list of 8-pixel chunks. The SIMD loop then runs over that list with everything in L1 and no
-// per-row scalar work on its dependency chain.
+// list of 8-pixel chunks. The SIMD work on the chunks then runs in two phases over batches of
+// kStageChunks chunks: phase A evaluates sigma, exp and alpha of each chunk (chunks independent
+// of each other, no branches on the data path, so the CPU overlaps many of them) and keeps the
+// chunks with a lane to composite; phase B walks those in order through the per-pixel state
+// (transmittance, sums), whose updates must follow the front-to-back order. One fused loop would
+// be bound by the latency of its ~120-cycle dependency chain per chunk.
 
 constexpr int64_t kBlockEntries = 32;
+constexpr int64_t kStageChunks = 64;
 
-// 8 pixels of one tile row: tile-local row, column of lane 0, and the lanes [lo, hi] to visit.
+// 8 pixels of one tile row: tile-local row, column of lane 0, the lanes [lo, hi] to visit, and
+// the row's dy = pixel centre y - mean y and c dy dy (the reference's operation order).
+template <typename scalar_t>
 struct Chunk {
     int32_t entry;  // index in the block
     int32_t row;
     int32_t start;
     int16_t lo, hi;
+    scalar_t dy, c_dy_dy;
 };
 
 template <typename scalar_t>
 struct Block {
     int64_t size = 0;                        // entries
-    std::vector<scalar_t> mx, my, a, b, c, o, cut;
+    int64_t num_chunks = 0;
+    std::vector<scalar_t> mx, a, b, c, o, cut;
     std::vector<int64_t> k;                  // index in the tile lists (position, slot)
     std::vector<scalar_t> feature;           // [entries][C]
-    std::vector<int64_t> chunk_begin;        // [entries + 1] into chunks
-    std::vector<Chunk> chunks;
+    std::vector<Chunk<scalar_t>> chunks;     // [capacity]
+    std::vector<scalar_t> dy;                // per footprint row of the entry being gathered
+    std::vector<int32_t> span_lo, span_hi;   // its columns that can pass the cutoff
 
     void reserve(int64_t channels, int64_t tile_size) {
-        for (auto* v : {&mx, &my, &a, &b, &c, &o, &cut}) v->resize(kBlockEntries);
+        for (auto* v : {&mx, &a, &b, &c, &o, &cut}) v->resize(kBlockEntries);
         k.resize(kBlockEntries);
         feature.resize(kBlockEntries * channels);
-        chunk_begin.resize(kBlockEntries + 1);
-        chunks.reserve(static_cast<size_t>(kBlockEntries * tile_size * ((tile_size + kLanes - 1) / kLanes + 1)));
+        const int64_t rows = (tile_size + kLanes - 1) / kLanes * kLanes;
+        for (auto* v : {&span_lo, &span_hi}) v->resize(rows);
+        dy.assign(rows, scalar_t(0));
+        chunks.resize(static_cast<size_t>(kBlockEntries * tile_size * ((tile_size + kLanes - 1) / kLanes + 1)));
     }
     void clear() {
         size = 0;
-        chunks.clear();
-        chunk_begin[0] = 0;
+        num_chunks = 0;
     }
 };
 
 // Appends list entry k (Gaussian splats[ids[k]]) to the block with its chunks; false when it
 // cannot touch a pixel of the tile (then nothing is appended).
-template <typename scalar_t>
+//
+// Row spans: in row dy the pixels with exact sigma <= cut' form the interval dx in
+// [(-b dy - root) / a, (-b dy + root) / a], root = sqrt(2 a cut' - dy^2 (a c - b^2)); cut' adds
+// to the cutoff a bound on the rounding of the float sigma over the box (see prepare_splat), so
+// every pixel whose float sigma passes lies in the span; one pixel of slack per side absorbs the
+// rounding of the span itself. Solved for 8 rows at a time; where the conic does not allow it
+// (a <= 0, non-finite values) the whole footprint row is visited.
+template <typename Ops, typename scalar_t>
 inline bool gather_entry(const Problem& p, const Splat<scalar_t>* splats, const TileRect& r, int64_t k,
                          Block<scalar_t>& blk) {
+    using D = typename Ops::D;
     const Splat<scalar_t>& g = splats[p.gaussian_ids[k]];
     if (g.never) return false;
     const Footprint fp = clip(g, r);
     if (fp.empty()) return false;
+    const int64_t rows = fp.ihi - fp.ilo + 1;
+    for (int64_t t = 0; t < rows; ++t)
+        blk.dy[t] = (static_cast<scalar_t>(fp.ilo + t) + static_cast<scalar_t>(0.5)) - g.my;
+    if (g.span_ok) {
+        const D zero = Ops::splat(0.0), one = Ops::splat(1.0);
+        const D col_lo = Ops::splat(static_cast<double>(fp.jlo)), col_hi = Ops::splat(static_cast<double>(fp.jhi));
+        for (int64_t t = 0; t < rows; t += kLanes) {
+            const D dy = widen(Ops::load(static_cast<const scalar_t*>(blk.dy.data() + t)));
+            const D disc = Ops::splat(g.span_c2a) - dy * dy * Ops::splat(g.det);
+            const D half_width = sqrt(max(disc, zero)) * Ops::splat(g.inv_a);
+            const D centre = Ops::splat(g.centre_x) - Ops::splat(g.b_over_a) * dy;
+            const D lo = min(max(ceil(centre - half_width) - one, col_lo), col_hi + one);
+            D hi = max(min(floor(centre + half_width) + one, col_hi), col_lo - one);
+            hi = select(lt(disc, zero), col_lo - one, hi);  // no pixel of the row can pass
+            store_int32(blk.span_lo.data() + t, lo);
+            store_int32(blk.span_hi.data() + t, hi);
+        }
+    } else {
+        std::fill(blk.span_lo.begin(), blk.span_lo.begin() + rows, static_cast<int32_t>(fp.jlo));
+        std::fill(blk.span_hi.begin(), blk.span_hi.begin() + rows, static_cast<int32_t>(fp.jhi));
+    }
     const int64_t e = blk.size;
-    const size_t first_chunk = blk.chunks.size();
     const int64_t last_start = p.row_stride - kLanes;
-    for (int64_t i = fp.ilo; i <= fp.ihi; ++i) {
-        const scalar_t dy = (static_cast<scalar_t>(i) + static_cast<scalar_t>(0.5)) - g.my;
-        int64_t jlo, jhi;
-        if (!row_span(g, fp, static_cast<double>(dy), jlo, jhi)) continue;
-        const int64_t hi = jhi - r.x0;
-        for (int64_t from = jlo - r.x0; from <= hi;) {
+    Chunk<scalar_t>* out = blk.chunks.data();
+    int64_t nc = blk.num_chunks;
+    for (int64_t t = 0; t < rows; ++t) {
+        const int64_t hi = blk.span_hi[t] - r.x0;
+        for (int64_t from = blk.span_lo[t] - r.x0; from <= hi;) {
             const int64_t start = std::min(from, last_start);
-            blk.chunks.push_back(Chunk{static_cast<int32_t>(e), static_cast<int32_t>(i - r.y0),
-                                       static_cast<int32_t>(start), static_cast<int16_t>(from - start),
-                                       static_cast<int16_t>(std::min<int64_t>(hi - start, kLanes - 1))});
+            out[nc++] = Chunk<scalar_t>{static_cast<int32_t>(e), static_cast<int32_t>(fp.ilo + t - r.y0),
+                                        static_cast<int32_t>(start), static_cast<int16_t>(from - start),
+                                        static_cast<int16_t>(std::min<int64_t>(hi - start, kLanes - 1)),
+                                        blk.dy[t], g.c * blk.dy[t] * blk.dy[t]};
             from = start + kLanes;
         }
     }
-    if (blk.chunks.size() == first_chunk) return false;
+    if (nc == blk.num_chunks) return false;
+    blk.num_chunks = nc;
     blk.mx[e] = g.mx;
-    blk.my[e] = g.my;
     blk.a[e] = g.a;
     blk.b[e] = g.b;
     blk.c[e] = g.c;
@@ -600,7 +640,6 @@ inline bool gather_entry(const Problem& p, const Splat<scalar_t>* splats, const 
     scalar_t* f = blk.feature.data() + e * p.channels;
     for (int64_t j = 0; j < p.channels; ++j) f[j] = g.feature[j];  // (a call to memmove costs more)
     blk.size = e + 1;
-    blk.chunk_begin[e + 1] = static_cast<int64_t>(blk.chunks.size());
     return true;
 }
 
@@ -643,6 +682,38 @@ RK_INLINE V alpha_raw(V sigma, V o, M m, V& vis) {
     return raw;
 }
 
+// Phase A for one chunk: sigma and alpha on the lanes of `m` (updated to the lanes that pass the
+// sigma and alpha tests); also returns vis and whether alpha is below the 0.999 clamp.
+template <typename Ops, typename scalar_t>
+struct ChunkEval {
+    using V = typename Ops::template V<scalar_t>;
+    using M = typename Ops::M;
+    V dx, vis, alpha;
+    M unclamped;
+};
+
+template <typename Ops, typename scalar_t>
+RK_INLINE ChunkEval<Ops, scalar_t> evaluate_chunk(const Block<scalar_t>& blk, const Chunk<scalar_t>& ch,
+                                                  const scalar_t* px, typename Ops::M& m) {
+    using V = typename Ops::template V<scalar_t>;
+    using R = Rules<scalar_t>;
+    const int64_t e = ch.entry;
+    ChunkEval<Ops, scalar_t> out;
+    out.dx = Ops::load(px + ch.start * kLanes) - Ops::template splat<scalar_t>(blk.mx[e]);
+    const V dx = out.dx;
+    const V half = Ops::template splat<scalar_t>(0.5);
+    const V sigma = half * (Ops::template splat<scalar_t>(blk.a[e]) * dx * dx + Ops::template splat<scalar_t>(ch.c_dy_dy)) +
+                    Ops::template splat<scalar_t>(blk.b[e]) * dx * Ops::template splat<scalar_t>(ch.dy);
+    m = m & ge(sigma, Ops::template splat<scalar_t>(0)) & le(sigma, Ops::template splat<scalar_t>(blk.cut[e]));
+    const V raw = alpha_raw<Ops, scalar_t>(sigma, Ops::template splat<scalar_t>(blk.o[e]), m, out.vis);
+    const V alpha_max = Ops::template splat<scalar_t>(R::alpha_max);
+    out.unclamped = le(raw, alpha_max);
+    const V alpha = select(out.unclamped, raw, alpha_max);
+    m = m & ge(alpha, Ops::template splat<scalar_t>(R::alpha_min));
+    out.alpha = masked(m, alpha);  // 0 on masked-off lanes: T, w and sums stay exact there
+    return out;
+}
+
 // ---- Forward ---------------------------------------------------------------------------------
 
 template <typename scalar_t>
@@ -659,10 +730,10 @@ struct ForwardScratch {  // tile-local, row stride Problem::row_stride
     std::vector<int32_t> last, done;
     std::vector<scalar_t> px;
     Block<scalar_t> block;
+    std::vector<scalar_t> stage_alpha;  // [kStageChunks][kLanes]
+    std::vector<int64_t> stage_chunk;   // [kStageChunks]
 };
 
-// Masked-off lanes take alpha = 0 rather than a blend: T * (1 - 0) = T and sum + f * 0 = sum are
-// exact, so their state is unchanged bit for bit.
 template <typename Ops, typename scalar_t>
 inline void forward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, int64_t tile,
                               const ForwardOut<scalar_t>& out, ForwardScratch<scalar_t>& s) {
@@ -677,40 +748,38 @@ inline void forward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, i
     s.accum.assign(n * C, 0.0);
     s.last.assign(n, 0);
     s.done.assign(n, 0);
+    s.stage_alpha.resize(kStageChunks * kLanes);
+    s.stage_chunk.resize(kStageChunks);
     pixel_columns(p, r, s.px);
     Block<scalar_t>& blk = s.block;
     blk.reserve(C, p.tile_size);
     int64_t alive = r.rows() * r.width();
-    const V half = Ops::template splat<scalar_t>(0.5), zero = Ops::template splat<scalar_t>(0);
-    const V one = Ops::template splat<scalar_t>(1), alpha_min = Ops::template splat<scalar_t>(R::alpha_min);
-    const V alpha_max = Ops::template splat<scalar_t>(R::alpha_max);
+    const V zero = Ops::template splat<scalar_t>(0), one = Ops::template splat<scalar_t>(1);
     const V t_min = Ops::template splat<scalar_t>(R::transmittance_min);
     const int64_t begin = p.offsets[tile];
     const int64_t end = p.offsets[tile + 1];
     for (int64_t next = begin; next < end && alive > 0;) {
         blk.clear();
-        for (; next < end && blk.size < kBlockEntries; ++next) gather_entry(p, splats, r, next, blk);
-        for (int64_t e = 0; e < blk.size && alive > 0; ++e) {
-            const M position = Ops::splat(static_cast<int32_t>(blk.k[e] - begin + 1));
-            const V mx = Ops::template splat<scalar_t>(blk.mx[e]), a = Ops::template splat<scalar_t>(blk.a[e]);
-            const V b = Ops::template splat<scalar_t>(blk.b[e]), o = Ops::template splat<scalar_t>(blk.o[e]);
-            const V cut = Ops::template splat<scalar_t>(blk.cut[e]);
-            const scalar_t my = blk.my[e], c = blk.c[e];
-            const scalar_t* f = blk.feature.data() + e * C;
-            for (int64_t ci = blk.chunk_begin[e]; ci < blk.chunk_begin[e + 1]; ++ci) {
-                const Chunk& ch = blk.chunks[ci];
+        for (; next < end && blk.size < kBlockEntries; ++next) gather_entry<Ops>(p, splats, r, next, blk);
+        const int64_t num_chunks = blk.num_chunks;
+        for (int64_t c0 = 0; c0 < num_chunks && alive > 0; c0 += kStageChunks) {
+            // Phase A: alpha of every chunk of the batch; keep those with a lane to composite.
+            int64_t staged = 0;
+            for (int64_t ci = c0; ci < std::min(num_chunks, c0 + kStageChunks); ++ci) {
+                const Chunk<scalar_t>& ch = blk.chunks[ci];
+                M m = and_not(Ops::span(ch.lo, ch.hi), Ops::load(s.done.data() + ch.row * p.row_stride + ch.start));
+                const ChunkEval<Ops, scalar_t> ev = evaluate_chunk<Ops>(blk, ch, s.px.data(), m);
+                Ops::store(s.stage_alpha.data() + staged * kLanes, ev.alpha);
+                s.stage_chunk[staged] = ci;
+                staged += any(m);
+            }
+            // Phase B: composite them in order (front to back for every pixel).
+            for (int64_t st = 0; st < staged && alive > 0; ++st) {
+                const Chunk<scalar_t>& ch = blk.chunks[s.stage_chunk[st]];
                 const int64_t q = ch.row * p.row_stride + ch.start;
-                M m = and_not(Ops::span(ch.lo, ch.hi), Ops::load(s.done.data() + q));
-                const scalar_t dy_s = (static_cast<scalar_t>(r.y0 + ch.row) + static_cast<scalar_t>(0.5)) - my;
-                const V dy = Ops::template splat<scalar_t>(dy_s);
-                const V dx = Ops::load(s.px.data() + ch.start * kLanes) - mx;
-                const V sigma = half * (a * dx * dx + Ops::template splat<scalar_t>(c * dy_s * dy_s)) + b * dx * dy;
-                m = m & ge(sigma, zero) & le(sigma, cut);
-                if (!any(m)) continue;
-                V vis;
-                const V raw = alpha_raw<Ops, scalar_t>(sigma, o, m, vis);
-                V alpha = select(le(raw, alpha_max), raw, alpha_max);
-                m = m & ge(alpha, alpha_min);
+                V alpha = Ops::load(static_cast<const scalar_t*>(s.stage_alpha.data() + st * kLanes));
+                // Pixels may have stopped since phase A (at an earlier chunk of this batch).
+                M m = and_not(gt(alpha, zero), Ops::load(s.done.data() + q));
                 alpha = masked(m, alpha);
                 const D T = Ops::load(s.T.data() + q);
                 D next_T = T * widen(one - alpha);
@@ -723,11 +792,13 @@ inline void forward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, i
                     next_T = T * widen(one - alpha);
                 }
                 const D w = widen(alpha * Ops::template narrow<scalar_t>(T));
+                const scalar_t* f = blk.feature.data() + ch.entry * C;
                 for (int64_t j = 0; j < C; ++j) {
                     double* acc = s.accum.data() + j * n + q;
                     Ops::store(acc, Ops::load(acc) + Ops::splat(static_cast<double>(f[j])) * w);
                 }
                 Ops::store(s.T.data() + q, next_T);
+                const M position = Ops::splat(static_cast<int32_t>(blk.k[ch.entry] - begin + 1));
                 Ops::store(s.last.data() + q, select(m, position, Ops::load(s.last.data() + q)));
             }
         }
@@ -764,10 +835,37 @@ struct BackwardScratch {  // tile-local, row stride Problem::row_stride
     std::vector<double> g_feature;    // [C][kLanes] per-lane sums of the current Gaussian
     std::vector<scalar_t> px;
     Block<scalar_t> block;
+    // Phase A results per staged chunk: alpha (0 off the lanes), vis (0 where the clamp holds or
+    // off the lanes), dx.
+    std::vector<scalar_t> stage_alpha, stage_vis, stage_dx;
+    std::vector<int64_t> stage_chunk;
 };
 
 // Slot layout per intersection: [means2d x, y | conic a, b, c | opacity | features 0..C-1].
 constexpr int64_t kSlotFixed = 6;
+
+// Per-lane sums of one Gaussian's gradients over a tile: g_o, and g_sigma times dx^2, dx dy,
+// dy^2, dx, dy (the conic and mean gradients follow from those), plus g_feature (in scratch).
+template <typename D>
+struct EntrySums {
+    D o, xx, xy, yy, x, y;
+};
+
+template <typename Ops, typename scalar_t>
+inline void write_slot(const Block<scalar_t>& blk, int64_t e, const EntrySums<typename Ops::D>& sum,
+                       const std::vector<double>& g_feature, int64_t C, scalar_t* slot) {
+    // sigma = 0.5 (a dx^2 + c dy^2) + b dx dy, dx = px - mx: d sigma / d mx = -(a dx + b dy).
+    const double sx = hsum(sum.x), sy = hsum(sum.y);
+    const double a = static_cast<double>(blk.a[e]), b = static_cast<double>(blk.b[e]);
+    const double c = static_cast<double>(blk.c[e]);
+    slot[0] = static_cast<scalar_t>(-(a * sx + b * sy));
+    slot[1] = static_cast<scalar_t>(-(b * sx + c * sy));
+    slot[2] = static_cast<scalar_t>(0.5 * hsum(sum.xx));
+    slot[3] = static_cast<scalar_t>(hsum(sum.xy));
+    slot[4] = static_cast<scalar_t>(0.5 * hsum(sum.yy));
+    slot[5] = static_cast<scalar_t>(hsum(sum.o));
+    for (int64_t j = 0; j < C; ++j) slot[kSlotFixed + j] = static_cast<scalar_t>(hsum(Ops::load(g_feature.data() + j * kLanes)));
+}
 
 template <typename Ops, typename scalar_t>
 inline void backward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, int64_t tile,
@@ -775,7 +873,6 @@ inline void backward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, 
     using V = typename Ops::template V<scalar_t>;
     using D = typename Ops::D;
     using M = typename Ops::M;
-    using R = Rules<scalar_t>;
     const TileRect r = tile_rect(p, tile);
     const int64_t n = r.rows() * p.row_stride;
     const int64_t C = p.channels;
@@ -790,6 +887,8 @@ inline void backward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, 
     s.g_image.assign(n * C, 0.0);
     s.last.assign(n, 0);
     s.g_feature.resize(C * kLanes);
+    for (auto* v : {&s.stage_alpha, &s.stage_vis, &s.stage_dx}) v->resize(kStageChunks * kLanes);
+    s.stage_chunk.resize(kStageChunks);
     pixel_columns(p, r, s.px);
     Block<scalar_t>& blk = s.block;
     blk.reserve(C, p.tile_size);
@@ -807,50 +906,55 @@ inline void backward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, 
             max_last = std::max(max_last, s.last[q]);
         }
     }
-    const V half = Ops::template splat<scalar_t>(0.5), zero = Ops::template splat<scalar_t>(0);
-    const V one = Ops::template splat<scalar_t>(1), alpha_min = Ops::template splat<scalar_t>(R::alpha_min);
-    const V alpha_max = Ops::template splat<scalar_t>(R::alpha_max);
+    const V one = Ops::template splat<scalar_t>(1);
     const D one_d = Ops::splat(1.0), zero_d = Ops::splat(0.0);
+    const EntrySums<D> no_sums{zero_d, zero_d, zero_d, zero_d, zero_d, zero_d};
     for (int64_t next = begin + max_last - 1; next >= begin;) {
         blk.clear();
-        for (; next >= begin && blk.size < kBlockEntries; --next) gather_entry(p, splats, r, next, blk);
-        for (int64_t e = 0; e < blk.size; ++e) {
-            const M position = Ops::splat(static_cast<int32_t>(blk.k[e] - begin));
-            const V mx = Ops::template splat<scalar_t>(blk.mx[e]), a = Ops::template splat<scalar_t>(blk.a[e]);
-            const V b = Ops::template splat<scalar_t>(blk.b[e]), o = Ops::template splat<scalar_t>(blk.o[e]);
-            const V cut = Ops::template splat<scalar_t>(blk.cut[e]);
-            const scalar_t my = blk.my[e], c = blk.c[e];
-            const scalar_t* f = blk.feature.data() + e * C;
-            const D minus_o = Ops::splat(-static_cast<double>(blk.o[e]));
-            std::fill(s.g_feature.begin(), s.g_feature.end(), 0.0);
-            // Per-lane sums over the tile of g_o, and of g_sigma times dx^2, dx dy, dy^2, dx, dy.
-            D sum_o = zero_d, sum_xx = zero_d, sum_xy = zero_d, sum_yy = zero_d, sum_x = zero_d, sum_y = zero_d;
-            bool touched = false;
-            for (int64_t ci = blk.chunk_begin[e]; ci < blk.chunk_begin[e + 1]; ++ci) {
-                const Chunk& ch = blk.chunks[ci];
-                const int64_t q = ch.row * p.row_stride + ch.start;
-                M m = Ops::span(ch.lo, ch.hi) & lt(position, Ops::load(s.last.data() + q));  // in front of the last contributor
-                if (!any(m)) continue;
-                const scalar_t dy_s = (static_cast<scalar_t>(r.y0 + ch.row) + static_cast<scalar_t>(0.5)) - my;
-                const V dy = Ops::template splat<scalar_t>(dy_s);
-                const V dx = Ops::load(s.px.data() + ch.start * kLanes) - mx;
-                const V sigma = half * (a * dx * dx + Ops::template splat<scalar_t>(c * dy_s * dy_s)) + b * dx * dy;
-                m = m & ge(sigma, zero) & le(sigma, cut);
-                if (!any(m)) continue;
-                V vis;
-                const V raw = alpha_raw<Ops, scalar_t>(sigma, o, m, vis);
-                const M unclamped = le(raw, alpha_max);  // the clamp at 0.999 passes no gradient
-                V alpha = select(unclamped, raw, alpha_max);
-                m = m & ge(alpha, alpha_min);
-                if (!any(m)) continue;
+        for (; next >= begin && blk.size < kBlockEntries; --next) gather_entry<Ops>(p, splats, r, next, blk);
+        const int64_t num_chunks = blk.num_chunks;
+        // The entry being summed (its chunks are consecutive) and its sums.
+        int64_t entry = -1;
+        EntrySums<D> sum = no_sums;
+        bool touched = false;
+        auto flush = [&]() {
+            if (touched) write_slot<Ops>(blk, entry, sum, s.g_feature, C, slots + blk.k[entry] * stride);
+        };
+        for (int64_t c0 = 0; c0 < num_chunks; c0 += kStageChunks) {
+            // Phase A: alpha, vis and dx of every chunk of the batch; keep those with a lane.
+            int64_t staged = 0;
+            for (int64_t ci = c0; ci < std::min(num_chunks, c0 + kStageChunks); ++ci) {
+                const Chunk<scalar_t>& ch = blk.chunks[ci];
+                const M position = Ops::splat(static_cast<int32_t>(blk.k[ch.entry] - begin));
+                // Lanes in front of their pixel's last contributor.
+                M m = Ops::span(ch.lo, ch.hi) & lt(position, Ops::load(s.last.data() + ch.row * p.row_stride + ch.start));
+                const ChunkEval<Ops, scalar_t> ev = evaluate_chunk<Ops>(blk, ch, s.px.data(), m);
+                Ops::store(s.stage_alpha.data() + staged * kLanes, ev.alpha);
+                Ops::store(s.stage_vis.data() + staged * kLanes, masked(m & ev.unclamped, ev.vis));
+                Ops::store(s.stage_dx.data() + staged * kLanes, ev.dx);
+                s.stage_chunk[staged] = ci;
+                staged += any(m);
+            }
+            // Phase B: back to front through the per-pixel state, summing per entry.
+            for (int64_t st = 0; st < staged; ++st) {
+                const Chunk<scalar_t>& ch = blk.chunks[s.stage_chunk[st]];
+                if (ch.entry != entry) {
+                    flush();
+                    entry = ch.entry;
+                    sum = no_sums;
+                    touched = false;
+                    std::fill(s.g_feature.begin(), s.g_feature.end(), 0.0);
+                }
                 touched = true;
-                alpha = masked(m, alpha);  // 0 on masked-off lanes: T, w, S stay exact there
+                const int64_t q = ch.row * p.row_stride + ch.start;
+                const V alpha = Ops::load(static_cast<const scalar_t*>(s.stage_alpha.data() + st * kLanes));
                 const D inv_one_minus = one_d / widen(one - alpha);
                 const D T_behind = Ops::load(s.T.data() + q);
                 const D T = T_behind * inv_one_minus;  // transmittance in front of this Gaussian
                 const D w = widen(alpha) * T;
                 // d image / d alpha_i = f_i T_i - (sum_{j>i} f_j w_j) / (1 - alpha_i), dotted with
                 // g_image: front * T - S / (1 - alpha_i).
+                const scalar_t* f = blk.feature.data() + ch.entry * C;
                 D front = zero_d;
                 for (int64_t j = 0; j < C; ++j) {
                     const D gc = Ops::load(s.g_image.data() + j * n + q);
@@ -862,32 +966,21 @@ inline void backward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, 
                 const D g_alpha = front * T + (Ops::load(s.g_alpha_T.data() + q) - S) * inv_one_minus;
                 Ops::store(s.behind.data() + q, S + w * front);
                 Ops::store(s.T.data() + q, T);
-                const D g_vis = masked(Ops::dmask(m & unclamped), g_alpha * widen(vis));  // d loss / d o
-                sum_o = sum_o + g_vis;
-                const D g_sigma = g_vis * minus_o;
-                const D dxd = widen(dx), dyd = Ops::splat(static_cast<double>(dy_s));
-                const D t = g_sigma * dxd, u = g_sigma * dyd;
-                sum_x = sum_x + t;
-                sum_xx = sum_xx + t * dxd;
-                sum_xy = sum_xy + t * dyd;
-                sum_y = sum_y + u;
-                sum_yy = sum_yy + u * dyd;
+                // vis is 0 off the lanes and where alpha is clamped (no gradient to o, sigma).
+                const D g_vis = g_alpha * widen(Ops::load(static_cast<const scalar_t*>(s.stage_vis.data() + st * kLanes)));
+                sum.o = sum.o + g_vis;  // d loss / d o
+                const D g_sigma = g_vis * Ops::splat(-static_cast<double>(blk.o[ch.entry]));
+                const D dx = widen(Ops::load(static_cast<const scalar_t*>(s.stage_dx.data() + st * kLanes)));
+                const D dy = Ops::splat(static_cast<double>(ch.dy));
+                const D t = g_sigma * dx, u = g_sigma * dy;
+                sum.x = sum.x + t;
+                sum.xx = sum.xx + t * dx;
+                sum.xy = sum.xy + t * dy;
+                sum.y = sum.y + u;
+                sum.yy = sum.yy + u * dy;
             }
-            if (!touched) continue;
-            // sigma = 0.5 (a dx^2 + c dy^2) + b dx dy, dx = px - mx: d sigma / d mx = -(a dx + b dy).
-            scalar_t* slot = slots + blk.k[e] * stride;
-            const double sx = hsum(sum_x), sy = hsum(sum_y);
-            const double ad = static_cast<double>(blk.a[e]), bd = static_cast<double>(blk.b[e]);
-            const double cd = static_cast<double>(c);
-            slot[0] = static_cast<scalar_t>(-(ad * sx + bd * sy));
-            slot[1] = static_cast<scalar_t>(-(bd * sx + cd * sy));
-            slot[2] = static_cast<scalar_t>(0.5 * hsum(sum_xx));
-            slot[3] = static_cast<scalar_t>(hsum(sum_xy));
-            slot[4] = static_cast<scalar_t>(0.5 * hsum(sum_yy));
-            slot[5] = static_cast<scalar_t>(hsum(sum_o));
-            for (int64_t j = 0; j < C; ++j)
-                slot[kSlotFixed + j] = static_cast<scalar_t>(hsum(Ops::load(s.g_feature.data() + j * kLanes)));
         }
+        flush();
     }
 }
 
@@ -944,6 +1037,61 @@ bool pick_tile_passes(int64_t isa, ForwardTileFn<scalar_t>& forward, BackwardTil
     return true;
 }
 
+// ---- Reusable buffers -------------------------------------------------------------------------
+//
+// The per-call arrays of megabytes (Gaussian parameters, gradient slots, reduction sums) come
+// from a small process-wide pool and go back to it after the call. Freshly allocated, they would
+// be returned to the operating system on every free and page-faulted in again on every call,
+// which costs about as much as a tenth of the compositing itself.
+class BufferPool {
+  public:
+    static BufferPool& instance() {
+        static BufferPool pool;
+        return pool;
+    }
+    std::unique_ptr<std::vector<unsigned char>> acquire(size_t bytes) {
+        std::unique_ptr<std::vector<unsigned char>> buffer;
+        {
+            std::lock_guard<std::mutex> lock(mutex_);
+            if (!free_.empty()) {  // the largest one, so that buffers do not all grow
+                auto largest = std::max_element(free_.begin(), free_.end(),
+                                                [](const auto& x, const auto& y) { return x->size() < y->size(); });
+                buffer = std::move(*largest);
+                free_.erase(largest);
+            }
+        }
+        if (!buffer) buffer.reset(new std::vector<unsigned char>());
+        if (buffer->size() < bytes) buffer->resize(bytes);
+        return buffer;
+    }
+    void release(std::unique_ptr<std::vector<unsigned char>> buffer) {
+        std::lock_guard<std::mutex> lock(mutex_);
+        if (free_.size() < kMaxFree) free_.push_back(std::move(buffer));
+    }
+
+  private:
+    static constexpr size_t kMaxFree = 16;
+    std::mutex mutex_;
+    std::vector<std::unique_ptr<std::vector<unsigned char>>> free_;
+};
+
+// An uninitialised array of n trivially copyable T from the pool, returned to it on destruction.
+template <typename T>
+class PooledArray {
+    static_assert(std::is_trivially_copyable<T>::value, "pooled arrays hold plain data");
+
+  public:
+    explicit PooledArray(size_t n) : buffer_(BufferPool::instance().acquire(n * sizeof(T))) {}
+    ~PooledArray() { BufferPool::instance().release(std::move(buffer_)); }
+    PooledArray(const PooledArray&) = delete;
+    PooledArray& operator=(const PooledArray&) = delete;
+    T* data() { return reinterpret_cast<T*>(buffer_->data()); }
+    const T* data() const { return reinterpret_cast<const T*>(buffer_->data()); }
+
+  private:
+    std::unique_ptr<std::vector<unsigned char>> buffer_;
+};
+
 // ---- Reduction of the backward slots -----------------------------------------------------------
 
 template <typename scalar_t>
@@ -969,7 +1117,9 @@ void reduce_slots(const Problem& p, const scalar_t* slots, int64_t threads, cons
         const int64_t lo = block * per_block;
         const int64_t hi = std::min(N, lo + per_block);
         if (lo >= hi) return;
-        std::vector<double> sums(static_cast<size_t>((hi - lo) * stride), 0.0);
+        PooledArray<double> pooled(static_cast<size_t>((hi - lo) * stride));
+        double* sums = pooled.data();
+        std::fill(sums, sums + (hi - lo) * stride, 0.0);
         for (int64_t k = 0; k < M; ++k) {
             const int64_t g = p.gaussian_ids[k];
             if (g < lo || g >= hi) continue;
@@ -1095,14 +1245,12 @@ Problem make_problem(const void* means2d, const void* conics, const void* opacit
 
 // Splat parameters of every Gaussian, computed in parallel blocks (each entry written once).
 template <typename scalar_t>
-std::vector<Splat<scalar_t>> prepare_splats(const Problem& p, int64_t threads) {
-    std::vector<Splat<scalar_t>> splats(static_cast<size_t>(p.num_gaussians));
+void prepare_splats(const Problem& p, int64_t threads, Splat<scalar_t>* splats) {
     const int64_t block = 4096;
     parallel_items((p.num_gaussians + block - 1) / block, threads, [&](int64_t b, int64_t) {
         const int64_t end = std::min(p.num_gaussians, (b + 1) * block);
         for (int64_t g = b * block; g < end; ++g) splats[g] = prepare_splat<scalar_t>(p, g);
     });
-    return splats;
 }
 
 // Status codes of the entry points.
@@ -1117,7 +1265,8 @@ int forward(const Problem& p, int64_t threads, int64_t isa, const ForwardOut<sca
     BackwardTileFn<scalar_t> unused;
     if (!pick_tile_passes<scalar_t>(isa, forward_tile, unused)) return kIsaUnavailable;
     const int64_t workers = std::max<int64_t>(1, threads);
-    const std::vector<Splat<scalar_t>> splats = prepare_splats<scalar_t>(p, workers);
+    PooledArray<Splat<scalar_t>> splats(static_cast<size_t>(p.num_gaussians));
+    prepare_splats<scalar_t>(p, workers, splats.data());
     std::vector<ForwardScratch<scalar_t>> scratch(static_cast<size_t>(workers));
     parallel_items(p.tiles_x * p.tiles_y, workers,
                    [&](int64_t tile, int64_t w) { forward_tile(p, splats.data(), tile, out, scratch[w]); });
@@ -1133,13 +1282,14 @@ int backward(const Problem& p, int64_t threads, int64_t isa, const BackwardIn<sc
     const int64_t workers = std::max<int64_t>(1, threads);
     const int64_t M = p.offsets[p.tiles_x * p.tiles_y];
     // Every slot is written by its tile (zeros where the Gaussian contributes nothing).
-    std::unique_ptr<scalar_t[]> slots(new scalar_t[static_cast<size_t>(M * (kSlotFixed + p.channels))]);
-    const std::vector<Splat<scalar_t>> splats = prepare_splats<scalar_t>(p, workers);
+    PooledArray<scalar_t> slots(static_cast<size_t>(M * (kSlotFixed + p.channels)));
+    PooledArray<Splat<scalar_t>> splats(static_cast<size_t>(p.num_gaussians));
+    prepare_splats<scalar_t>(p, workers, splats.data());
     std::vector<BackwardScratch<scalar_t>> scratch(static_cast<size_t>(workers));
     parallel_items(p.tiles_x * p.tiles_y, workers, [&](int64_t tile, int64_t w) {
-        backward_tile(p, splats.data(), tile, in, slots.get(), scratch[w]);
+        backward_tile(p, splats.data(), tile, in, slots.data(), scratch[w]);
     });
-    reduce_slots<scalar_t>(p, slots.get(), workers, out);
+    reduce_slots<scalar_t>(p, slots.data(), workers, out);
     return kOk;
 }
 
