@@ -224,6 +224,8 @@ RK_INLINE D8 min(D8 a, D8 b) { D8 r; RK_EACH_LANE r.v[l] = a.v[l] < b.v[l] ? a.v
 // Integral values in int32 range to int32.
 RK_INLINE void store_int32(int32_t* p, D8 a) { RK_EACH_LANE p[l] = static_cast<int32_t>(a.v[l]); }
 // Sum of the 8 lanes in a fixed order (the AVX2 variant adds in the same order).
+RK_INLINE double hsum(D8 a);
+RK_INLINE double hsum(Vec<float> a) { return hsum(widen(a)); }
 RK_INLINE double hsum(D8 a) {
     const double t0 = a.v[0] + a.v[4], t1 = a.v[1] + a.v[5], t2 = a.v[2] + a.v[6], t3 = a.v[3] + a.v[7];
     return (t0 + t2) + (t1 + t3);
@@ -317,6 +319,8 @@ RK_AVX2 void store_int32(int32_t* p, D8 a) {
     _mm_storeu_si128(reinterpret_cast<__m128i*>(p), _mm256_cvttpd_epi32(a.lo));
     _mm_storeu_si128(reinterpret_cast<__m128i*>(p + 4), _mm256_cvttpd_epi32(a.hi));
 }
+RK_AVX2 double hsum(D8 a);
+RK_AVX2 double hsum(F8 a) { return hsum(widen(a)); }
 RK_AVX2 double hsum(D8 a) {  // the order of portable::hsum
     const __m256d t = _mm256_add_pd(a.lo, a.hi);                                   // t0 t1 t2 t3
     const __m128d u = _mm_add_pd(_mm256_castpd256_pd128(t), _mm256_extractf128_pd(t, 1));  // t0+t2, t1+t3
@@ -575,6 +579,19 @@ struct Block {
     }
 };
 
+// Starts loading the parameters of list entry k, a few entries ahead of gather_entry: they are
+// scattered over megabytes, and each entry's own work is too long for the CPU to reach the next
+// entry's loads by itself.
+template <typename scalar_t>
+RK_INLINE void prefetch_entry(const Problem& p, const Splat<scalar_t>* splats, int64_t k) {
+    const int64_t g = p.gaussian_ids[k];
+    const char* splat = reinterpret_cast<const char*>(splats + g);
+    __builtin_prefetch(splat);
+    __builtin_prefetch(splat + sizeof(Splat<scalar_t>) - 1);
+    __builtin_prefetch(static_cast<const scalar_t*>(p.features) + g * p.channels);
+}
+constexpr int64_t kPrefetchDistance = 8;
+
 // Appends list entry k (Gaussian splats[ids[k]]) to the block with its chunks; false when it
 // cannot touch a pixel of the tile (then nothing is appended).
 //
@@ -760,7 +777,10 @@ inline void forward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, i
     const int64_t end = p.offsets[tile + 1];
     for (int64_t next = begin; next < end && alive > 0;) {
         blk.clear();
-        for (; next < end && blk.size < kBlockEntries; ++next) gather_entry<Ops>(p, splats, r, next, blk);
+        for (; next < end && blk.size < kBlockEntries; ++next) {
+            if (next + kPrefetchDistance < end) prefetch_entry(p, splats, next + kPrefetchDistance);
+            gather_entry<Ops>(p, splats, r, next, blk);
+        }
         const int64_t num_chunks = blk.num_chunks;
         for (int64_t c0 = 0; c0 < num_chunks && alive > 0; c0 += kStageChunks) {
             // Phase A: alpha of every chunk of the batch; keep those with a lane to composite.
@@ -830,9 +850,9 @@ struct BackwardScratch {  // tile-local, row stride Problem::row_stride
     std::vector<double> T;            // transmittance behind the current Gaussian
     std::vector<double> behind;       // S: sum over Gaussians behind of w <g_image, f>
     std::vector<double> g_alpha_T;    // g_alpha_out * T_final
-    std::vector<double> g_image;      // [C][pixels]
+    std::vector<scalar_t> g_image;    // [C][pixels]
     std::vector<int32_t> last;
-    std::vector<double> g_feature;    // [C][kLanes] per-lane sums of the current Gaussian
+    std::vector<scalar_t> g_feature;  // [C][kLanes] per-lane sums of the current Gaussian
     std::vector<scalar_t> px;
     Block<scalar_t> block;
     // Phase A results per staged chunk: alpha (0 off the lanes), vis (0 where the clamp holds or
@@ -846,14 +866,17 @@ constexpr int64_t kSlotFixed = 6;
 
 // Per-lane sums of one Gaussian's gradients over a tile: g_o, and g_sigma times dx^2, dx dy,
 // dy^2, dx, dy (the conic and mean gradients follow from those), plus g_feature (in scratch).
-template <typename D>
+// They are in the scalar type: each lane sums at most a few dozen terms of one tile, and the
+// lanes, then the tiles, are added in double. The per-pixel state that runs through all the
+// Gaussians of a pixel (transmittance, S) stays in double.
+template <typename V>
 struct EntrySums {
-    D o, xx, xy, yy, x, y;
+    V o, xx, xy, yy, x, y;
 };
 
 template <typename Ops, typename scalar_t>
-inline void write_slot(const Block<scalar_t>& blk, int64_t e, const EntrySums<typename Ops::D>& sum,
-                       const std::vector<double>& g_feature, int64_t C, scalar_t* slot) {
+inline void write_slot(const Block<scalar_t>& blk, int64_t e, const EntrySums<typename Ops::template V<scalar_t>>& sum,
+                       const std::vector<scalar_t>& g_feature, int64_t C, scalar_t* slot) {
     // sigma = 0.5 (a dx^2 + c dy^2) + b dx dy, dx = px - mx: d sigma / d mx = -(a dx + b dy).
     const double sx = hsum(sum.x), sy = hsum(sum.y);
     const double a = static_cast<double>(blk.a[e]), b = static_cast<double>(blk.b[e]);
@@ -864,7 +887,8 @@ inline void write_slot(const Block<scalar_t>& blk, int64_t e, const EntrySums<ty
     slot[3] = static_cast<scalar_t>(hsum(sum.xy));
     slot[4] = static_cast<scalar_t>(0.5 * hsum(sum.yy));
     slot[5] = static_cast<scalar_t>(hsum(sum.o));
-    for (int64_t j = 0; j < C; ++j) slot[kSlotFixed + j] = static_cast<scalar_t>(hsum(Ops::load(g_feature.data() + j * kLanes)));
+    for (int64_t j = 0; j < C; ++j)
+        slot[kSlotFixed + j] = static_cast<scalar_t>(hsum(Ops::load(static_cast<const scalar_t*>(g_feature.data() + j * kLanes))));
 }
 
 template <typename Ops, typename scalar_t>
@@ -884,7 +908,7 @@ inline void backward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, 
     s.T.assign(n, 1.0);
     s.behind.assign(n, 0.0);
     s.g_alpha_T.assign(n, 0.0);
-    s.g_image.assign(n * C, 0.0);
+    s.g_image.assign(n * C, scalar_t(0));
     s.last.assign(n, 0);
     s.g_feature.resize(C * kLanes);
     for (auto* v : {&s.stage_alpha, &s.stage_vis, &s.stage_dx}) v->resize(kStageChunks * kLanes);
@@ -902,20 +926,23 @@ inline void backward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, 
             // d (1 - T_final) / d alpha_i = T_final / (1 - alpha_i): the part of the alpha
             // gradient that does not depend on the Gaussians behind.
             s.g_alpha_T[q] = static_cast<double>(in.grad_alpha[pix]) * in.transmittance[pix];
-            for (int64_t ch = 0; ch < C; ++ch) s.g_image[ch * n + q] = static_cast<double>(in.grad_image[pix * C + ch]);
+            for (int64_t ch = 0; ch < C; ++ch) s.g_image[ch * n + q] = in.grad_image[pix * C + ch];
             max_last = std::max(max_last, s.last[q]);
         }
     }
-    const V one = Ops::template splat<scalar_t>(1);
-    const D one_d = Ops::splat(1.0), zero_d = Ops::splat(0.0);
-    const EntrySums<D> no_sums{zero_d, zero_d, zero_d, zero_d, zero_d, zero_d};
+    const V one = Ops::template splat<scalar_t>(1), zero = Ops::template splat<scalar_t>(0);
+    const D one_d = Ops::splat(1.0);
+    const EntrySums<V> no_sums{zero, zero, zero, zero, zero, zero};
     for (int64_t next = begin + max_last - 1; next >= begin;) {
         blk.clear();
-        for (; next >= begin && blk.size < kBlockEntries; --next) gather_entry<Ops>(p, splats, r, next, blk);
+        for (; next >= begin && blk.size < kBlockEntries; --next) {
+            if (next - kPrefetchDistance >= begin) prefetch_entry(p, splats, next - kPrefetchDistance);
+            gather_entry<Ops>(p, splats, r, next, blk);
+        }
         const int64_t num_chunks = blk.num_chunks;
         // The entry being summed (its chunks are consecutive) and its sums.
         int64_t entry = -1;
-        EntrySums<D> sum = no_sums;
+        EntrySums<V> sum = no_sums;
         bool touched = false;
         auto flush = [&]() {
             if (touched) write_slot<Ops>(blk, entry, sum, s.g_feature, C, slots + blk.k[entry] * stride);
@@ -943,7 +970,7 @@ inline void backward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, 
                     entry = ch.entry;
                     sum = no_sums;
                     touched = false;
-                    std::fill(s.g_feature.begin(), s.g_feature.end(), 0.0);
+                    std::fill(s.g_feature.begin(), s.g_feature.end(), scalar_t(0));
                 }
                 touched = true;
                 const int64_t q = ch.row * p.row_stride + ch.start;
@@ -952,27 +979,31 @@ inline void backward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, 
                 const D T_behind = Ops::load(s.T.data() + q);
                 const D T = T_behind * inv_one_minus;  // transmittance in front of this Gaussian
                 const D w = widen(alpha) * T;
+                const V w_s = Ops::template narrow<scalar_t>(w);
                 // d image / d alpha_i = f_i T_i - (sum_{j>i} f_j w_j) / (1 - alpha_i), dotted with
                 // g_image: front * T - S / (1 - alpha_i).
                 const scalar_t* f = blk.feature.data() + ch.entry * C;
-                D front = zero_d;
+                V front = zero;
                 for (int64_t j = 0; j < C; ++j) {
-                    const D gc = Ops::load(s.g_image.data() + j * n + q);
-                    front = front + gc * Ops::splat(static_cast<double>(f[j]));
-                    double* gf = s.g_feature.data() + j * kLanes;
-                    Ops::store(gf, Ops::load(gf) + w * gc);
+                    const V gc = Ops::load(static_cast<const scalar_t*>(s.g_image.data() + j * n + q));
+                    front = front + gc * Ops::template splat<scalar_t>(f[j]);
+                    scalar_t* gf = s.g_feature.data() + j * kLanes;
+                    Ops::store(gf, Ops::load(static_cast<const scalar_t*>(gf)) + w_s * gc);
                 }
+                const D front_d = widen(front);
                 const D S = Ops::load(s.behind.data() + q);
-                const D g_alpha = front * T + (Ops::load(s.g_alpha_T.data() + q) - S) * inv_one_minus;
-                Ops::store(s.behind.data() + q, S + w * front);
+                const D g_alpha = front_d * T + (Ops::load(s.g_alpha_T.data() + q) - S) * inv_one_minus;
+                Ops::store(s.behind.data() + q, S + w * front_d);
                 Ops::store(s.T.data() + q, T);
-                // vis is 0 off the lanes and where alpha is clamped (no gradient to o, sigma).
-                const D g_vis = g_alpha * widen(Ops::load(static_cast<const scalar_t*>(s.stage_vis.data() + st * kLanes)));
+                // vis is 0 off the lanes and where alpha is clamped (no gradient to o, sigma);
+                // masking the product too keeps a non-finite g_alpha there out of the sums.
+                const V vis = Ops::load(static_cast<const scalar_t*>(s.stage_vis.data() + st * kLanes));
+                const V g_vis = masked(gt(vis, zero), Ops::template narrow<scalar_t>(g_alpha) * vis);
                 sum.o = sum.o + g_vis;  // d loss / d o
-                const D g_sigma = g_vis * Ops::splat(-static_cast<double>(blk.o[ch.entry]));
-                const D dx = widen(Ops::load(static_cast<const scalar_t*>(s.stage_dx.data() + st * kLanes)));
-                const D dy = Ops::splat(static_cast<double>(ch.dy));
-                const D t = g_sigma * dx, u = g_sigma * dy;
+                const V g_sigma = g_vis * Ops::template splat<scalar_t>(-blk.o[ch.entry]);
+                const V dx = Ops::load(static_cast<const scalar_t*>(s.stage_dx.data() + st * kLanes));
+                const V dy = Ops::template splat<scalar_t>(ch.dy);
+                const V t = g_sigma * dx, u = g_sigma * dy;
                 sum.x = sum.x + t;
                 sum.xx = sum.xx + t * dx;
                 sum.xy = sum.xy + t * dy;
