@@ -359,8 +359,9 @@ def kernel_isa(dtype: torch.dtype = torch.float32) -> str:
 def bin_gaussians_compiled(projection: Projection, width: int, height: int, tile_size: int = TILE_SIZE) -> TileBins:
     """Compiled equivalent of tiles.bin_gaussians: the same per-tile, front-to-back lists.
 
-    A counting sort in C++ (O(N log N + M) for M intersections) instead of torch's sort of all
-    intersection keys; it also avoids a dozen small torch ops per view.
+    A radix sort by depth and a counting sort into tiles in C++ (O(N + M) for M intersections)
+    instead of torch's sort of all intersection keys; it also avoids a dozen small torch ops per
+    view.
 
     Args:
         projection: CPU projection of N Gaussians (means2d, radii, depths, visible are read).

@@ -1176,7 +1176,8 @@ void reduce_slots(const Problem& p, const scalar_t* slots, int64_t threads, cons
 // A visible Gaussian is listed in every tile its box [m - r, m + r] touches, with the tile range
 // computed exactly as tiles.tile_ranges does (float64 floor/ceil of (m -/+ r) / tile_size, clamped
 // to the grid). Lists are filled by walking the visible Gaussians in a stable depth order, so each
-// tile's list is front to back with ties by Gaussian index: a counting sort, O(N log N + M).
+// tile's list is front to back with ties by Gaussian index: a radix sort by depth, then a
+// counting sort into the tiles, O(N + M).
 
 struct BinProblem {
     const int32_t* radii;     // [N, 2]
@@ -1223,6 +1224,45 @@ int64_t bin_count(const BinProblem& b, const scalar_t* means2d, int64_t* offsets
     return offsets[tiles];
 }
 
+// An unsigned integer whose order is the order of the (non-NaN) value; -0 and +0 map alike, as
+// they compare equal.
+template <typename scalar_t>
+using SortKey = typename std::conditional<sizeof(scalar_t) == 4, uint32_t, uint64_t>::type;
+
+template <typename scalar_t>
+SortKey<scalar_t> sort_key(scalar_t v) {
+    using K = SortKey<scalar_t>;
+    v = v + scalar_t(0);  // -0 -> +0
+    K bits;
+    std::memcpy(&bits, &v, sizeof bits);
+    const K sign = K(1) << (8 * sizeof(K) - 1);
+    return (bits & sign) ? ~bits : (bits | sign);
+}
+
+// Stable sort of `order` (Gaussian indices) by depth: an LSD radix sort on sort_key, 8 bits per
+// pass, so ties keep their (increasing index) order exactly as torch.sort(stable=True) does.
+template <typename scalar_t>
+void sort_by_depth(std::vector<int64_t>& order, const scalar_t* depths) {
+    using K = SortKey<scalar_t>;
+    const size_t n = order.size();
+    std::vector<K> keys(n), keys_tmp(n);
+    std::vector<int64_t> order_tmp(n);
+    for (size_t i = 0; i < n; ++i) keys[i] = sort_key(depths[order[i]]);
+    for (unsigned shift = 0; shift < 8 * sizeof(K); shift += 8) {
+        size_t count[257] = {0};
+        for (size_t i = 0; i < n; ++i) ++count[((keys[i] >> shift) & 0xFF) + 1];
+        if (std::find(count + 1, count + 257, n) != count + 257) continue;  // one digit value: order kept
+        for (int d = 0; d < 256; ++d) count[d + 1] += count[d];
+        for (size_t i = 0; i < n; ++i) {
+            const size_t dst = count[(keys[i] >> shift) & 0xFF]++;
+            keys_tmp[dst] = keys[i];
+            order_tmp[dst] = order[i];
+        }
+        keys.swap(keys_tmp);
+        order.swap(order_tmp);
+    }
+}
+
 template <typename scalar_t>
 void bin_fill(const BinProblem& b, const scalar_t* means2d, const scalar_t* depths, const int64_t* offsets,
               int64_t* ids) {
@@ -1231,7 +1271,7 @@ void bin_fill(const BinProblem& b, const scalar_t* means2d, const scalar_t* dept
     TileSpan s;
     for (int64_t g = 0; g < b.num_gaussians; ++g)
         if (tile_span(b, means2d, g, s)) order.push_back(g);
-    std::stable_sort(order.begin(), order.end(), [&](int64_t i, int64_t j) { return depths[i] < depths[j]; });
+    sort_by_depth(order, depths);
     std::vector<int64_t> cursor(offsets, offsets + b.tiles_x * b.tiles_y);
     for (int64_t g : order) {
         tile_span(b, means2d, g, s);
