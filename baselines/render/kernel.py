@@ -160,8 +160,8 @@ def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
         fill.restype = ctypes.c_int
     lib.rk_isa_supported.argtypes = [i64]
     lib.rk_isa_supported.restype = ctypes.c_int
-    lib.rk_exp_f32.argtypes = [ptr, ptr, i64, i64]
-    lib.rk_exp_f32.restype = ctypes.c_int
+    lib.rk_raw_alpha_f32.argtypes = [ptr, ptr, ptr, i64, i64]
+    lib.rk_raw_alpha_f32.restype = ctypes.c_int
     lib.rk_libm_expf.argtypes = [ptr, ptr, i64]
     lib.rk_libm_expf.restype = None
     lib.rk_abi_version.argtypes = []

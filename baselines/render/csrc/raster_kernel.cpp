@@ -155,18 +155,6 @@ RK_INLINE T exp_poly(T x, T& k, Splat c) {
     return ((p * z) + r) + c(1.0f);  // exp(r); the caller scales by 2^k
 }
 
-RK_INLINE float exp_lane(float x) {
-    x = x >= kLowest ? x : kLowest;  // (NaN -> kLowest: only lanes that are masked off get here)
-    float k;
-    const float y = exp_poly(x, k, [](float v) { return v; });
-    int32_t yb;
-    std::memcpy(&yb, &y, sizeof yb);
-    yb += static_cast<int32_t>(static_cast<uint32_t>(static_cast<int32_t>(k)) << 23);
-    float result;
-    std::memcpy(&result, &yb, sizeof result);
-    return result;
-}
-
 // Half-width of the band around the alpha thresholds (relative) in which o exp(-sigma) is
 // recomputed with the C library's expf: 2^-18 is 32 float ulp, far beyond the fast exp's error.
 constexpr float kThresholdBand = 1.0f / 262144.0f;
@@ -179,92 +167,211 @@ constexpr float kThresholdBand = 1.0f / 262144.0f;
 // without AVX2.
 namespace portable {
 
-#define RK_EACH_LANE for (int l = 0; l < kLanes; ++l)
+// 8 lanes as parts of the 16-byte vectors every SIMD target has (SSE2, NEON, ...), written with
+// the GCC / Clang vector extensions, so the compiler maps them onto the target's registers.
+typedef float f4 __attribute__((vector_size(16)));
+typedef int32_t i4 __attribute__((vector_size(16)));
+typedef uint32_t u4 __attribute__((vector_size(16)));
+typedef double d2 __attribute__((vector_size(16)));
+typedef int64_t l2 __attribute__((vector_size(16)));
+
+template <typename T>
+struct PartOf;
+template <>
+struct PartOf<float> {
+    using type = f4;
+};
+template <>
+struct PartOf<double> {
+    using type = d2;
+};
+template <>
+struct PartOf<int32_t> {
+    using type = i4;
+};
 
 template <typename T>
 struct Vec {
-    T v[kLanes];
+    using Part = typename PartOf<T>::type;
+    static constexpr int kParts = kLanes * sizeof(T) / sizeof(Part);
+    Part p[kParts];
 };
-using Mask = Vec<int32_t>;
+using Mask = Vec<int32_t>;  // lanes 0 or -1
 using D8 = Vec<double>;
 
+#define RK_EACH_PART(T) for (int i = 0; i < Vec<T>::kParts; ++i)
+
 template <typename T>
-RK_INLINE Vec<T> operator+(Vec<T> a, Vec<T> b) { Vec<T> r; RK_EACH_LANE r.v[l] = a.v[l] + b.v[l]; return r; }
+RK_INLINE Vec<T> operator+(Vec<T> a, Vec<T> b) { Vec<T> r; RK_EACH_PART(T) r.p[i] = a.p[i] + b.p[i]; return r; }
 template <typename T>
-RK_INLINE Vec<T> operator-(Vec<T> a, Vec<T> b) { Vec<T> r; RK_EACH_LANE r.v[l] = a.v[l] - b.v[l]; return r; }
+RK_INLINE Vec<T> operator-(Vec<T> a, Vec<T> b) { Vec<T> r; RK_EACH_PART(T) r.p[i] = a.p[i] - b.p[i]; return r; }
 template <typename T>
-RK_INLINE Vec<T> operator*(Vec<T> a, Vec<T> b) { Vec<T> r; RK_EACH_LANE r.v[l] = a.v[l] * b.v[l]; return r; }
+RK_INLINE Vec<T> operator*(Vec<T> a, Vec<T> b) { Vec<T> r; RK_EACH_PART(T) r.p[i] = a.p[i] * b.p[i]; return r; }
 template <typename T>
-RK_INLINE Vec<T> operator/(Vec<T> a, Vec<T> b) { Vec<T> r; RK_EACH_LANE r.v[l] = a.v[l] / b.v[l]; return r; }
-RK_INLINE Mask operator&(Mask a, Mask b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] & b.v[l]; return r; }
-RK_INLINE Mask operator|(Mask a, Mask b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] | b.v[l]; return r; }
-RK_INLINE Mask and_not(Mask a, Mask b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] & ~b.v[l]; return r; }  // a & ~b
-template <typename T>
-RK_INLINE Mask ge(Vec<T> a, Vec<T> b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] >= b.v[l] ? -1 : 0; return r; }
-template <typename T>
-RK_INLINE Mask gt(Vec<T> a, Vec<T> b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] > b.v[l] ? -1 : 0; return r; }
-template <typename T>
-RK_INLINE Mask le(Vec<T> a, Vec<T> b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] <= b.v[l] ? -1 : 0; return r; }
-template <typename T>
-RK_INLINE Mask lt(Vec<T> a, Vec<T> b) { Mask r; RK_EACH_LANE r.v[l] = a.v[l] < b.v[l] ? -1 : 0; return r; }
-template <typename T>
-RK_INLINE Vec<T> select(Mask m, Vec<T> a, Vec<T> b) { Vec<T> r; RK_EACH_LANE r.v[l] = m.v[l] ? a.v[l] : b.v[l]; return r; }
-template <typename T>
-RK_INLINE Vec<T> masked(Mask m, Vec<T> a) { Vec<T> r; RK_EACH_LANE r.v[l] = m.v[l] ? a.v[l] : T(0); return r; }  // 0 off m
-RK_INLINE bool any(Mask m) { int32_t x = 0; RK_EACH_LANE x |= m.v[l]; return x != 0; }
-RK_INLINE int count(Mask m) { int n = 0; RK_EACH_LANE n += m.v[l] != 0; return n; }
-template <typename T>
-RK_INLINE D8 widen(Vec<T> a) { D8 r; RK_EACH_LANE r.v[l] = static_cast<double>(a.v[l]); return r; }
-RK_INLINE D8 sqrt(D8 a) { D8 r; RK_EACH_LANE r.v[l] = std::sqrt(a.v[l]); return r; }
-RK_INLINE D8 floor(D8 a) { D8 r; RK_EACH_LANE r.v[l] = std::floor(a.v[l]); return r; }
-RK_INLINE D8 ceil(D8 a) { D8 r; RK_EACH_LANE r.v[l] = std::ceil(a.v[l]); return r; }
-// max / min as x86's maxpd / minpd: the second operand where the first is NaN.
-RK_INLINE D8 max(D8 a, D8 b) { D8 r; RK_EACH_LANE r.v[l] = a.v[l] > b.v[l] ? a.v[l] : b.v[l]; return r; }
-RK_INLINE D8 min(D8 a, D8 b) { D8 r; RK_EACH_LANE r.v[l] = a.v[l] < b.v[l] ? a.v[l] : b.v[l]; return r; }
-// Integral values in int32 range to int32.
-RK_INLINE void store_int32(int32_t* p, D8 a) { RK_EACH_LANE p[l] = static_cast<int32_t>(a.v[l]); }
-// Sum of the 8 lanes in a fixed order (the AVX2 variant adds in the same order).
-RK_INLINE double hsum(D8 a);
-RK_INLINE double hsum(Vec<float> a) { return hsum(widen(a)); }
-RK_INLINE double hsum(D8 a) {
-    const double t0 = a.v[0] + a.v[4], t1 = a.v[1] + a.v[5], t2 = a.v[2] + a.v[6], t3 = a.v[3] + a.v[7];
-    return (t0 + t2) + (t1 + t3);
+RK_INLINE Vec<T> operator/(Vec<T> a, Vec<T> b) { Vec<T> r; RK_EACH_PART(T) r.p[i] = a.p[i] / b.p[i]; return r; }
+RK_INLINE Mask operator&(Mask a, Mask b) { Mask r; RK_EACH_PART(int32_t) r.p[i] = a.p[i] & b.p[i]; return r; }
+RK_INLINE Mask operator|(Mask a, Mask b) { Mask r; RK_EACH_PART(int32_t) r.p[i] = a.p[i] | b.p[i]; return r; }
+RK_INLINE Mask and_not(Mask a, Mask b) { Mask r; RK_EACH_PART(int32_t) r.p[i] = a.p[i] & ~b.p[i]; return r; }  // a & ~b
+
+// The 64-bit lane masks of doubles 2j, 2j + 1 from a Mask, and back.
+RK_INLINE l2 double_part(Mask m, int j) {
+    const i4 q = m.p[j / 2];
+    return j % 2 ? l2{q[2], q[3]} : l2{q[0], q[1]};
 }
+RK_INLINE Mask from_double_parts(const l2 (&m)[4]) {
+    Mask r;
+    r.p[0] = i4{static_cast<int32_t>(m[0][0]), static_cast<int32_t>(m[0][1]), static_cast<int32_t>(m[1][0]),
+                static_cast<int32_t>(m[1][1])};
+    r.p[1] = i4{static_cast<int32_t>(m[2][0]), static_cast<int32_t>(m[2][1]), static_cast<int32_t>(m[3][0]),
+                static_cast<int32_t>(m[3][1])};
+    return r;
+}
+
+// Comparisons (false for NaN, like C++'s and x86's ordered ones) to a Mask.
+#define RK_COMPARISON(NAME, OP)                                                                       \
+    RK_INLINE Mask NAME(Vec<float> a, Vec<float> b) {                                                 \
+        Mask r;                                                                                       \
+        RK_EACH_PART(float) r.p[i] = a.p[i] OP b.p[i];                                                \
+        return r;                                                                                     \
+    }                                                                                                 \
+    RK_INLINE Mask NAME(Vec<double> a, Vec<double> b) {                                               \
+        l2 m[4];                                                                                      \
+        RK_EACH_PART(double) m[i] = a.p[i] OP b.p[i];                                                 \
+        return from_double_parts(m);                                                                  \
+    }
+RK_COMPARISON(ge, >=)
+RK_COMPARISON(gt, >)
+RK_COMPARISON(le, <=)
+RK_COMPARISON(lt, <)
+#undef RK_COMPARISON
+RK_INLINE Mask lt(Mask a, Mask b) { Mask r; RK_EACH_PART(int32_t) r.p[i] = a.p[i] < b.p[i]; return r; }
+
+// Bitwise selects: a where m, else b.
+RK_INLINE Vec<float> select(Mask m, Vec<float> a, Vec<float> b) {
+    Vec<float> r;
+    RK_EACH_PART(float) r.p[i] = reinterpret_cast<f4>((reinterpret_cast<i4>(a.p[i]) & m.p[i]) | (reinterpret_cast<i4>(b.p[i]) & ~m.p[i]));
+    return r;
+}
+RK_INLINE Vec<double> select(Mask m, Vec<double> a, Vec<double> b) {
+    Vec<double> r;
+    RK_EACH_PART(double) {
+        const l2 q = double_part(m, i);
+        r.p[i] = reinterpret_cast<d2>((reinterpret_cast<l2>(a.p[i]) & q) | (reinterpret_cast<l2>(b.p[i]) & ~q));
+    }
+    return r;
+}
+RK_INLINE Mask select(Mask m, Mask a, Mask b) { Mask r; RK_EACH_PART(int32_t) r.p[i] = (a.p[i] & m.p[i]) | (b.p[i] & ~m.p[i]); return r; }
+template <typename T>
+RK_INLINE Vec<T> masked(Mask m, Vec<T> a) { return select(m, a, Vec<T>{}); }  // 0 off m
+
+RK_INLINE bool any(Mask m) {
+    const i4 x = m.p[0] | m.p[1];
+    return (x[0] | x[1] | x[2] | x[3]) != 0;
+}
+RK_INLINE int count(Mask m) {
+    int n = 0;
+    RK_EACH_PART(int32_t) for (int l = 0; l < 4; ++l) n += m.p[i][l] != 0;
+    return n;
+}
+RK_INLINE D8 widen(Vec<float> a) {
+    D8 r;
+    RK_EACH_PART(float) {
+        r.p[2 * i] = d2{static_cast<double>(a.p[i][0]), static_cast<double>(a.p[i][1])};
+        r.p[2 * i + 1] = d2{static_cast<double>(a.p[i][2]), static_cast<double>(a.p[i][3])};
+    }
+    return r;
+}
+RK_INLINE D8 widen(D8 a) { return a; }
+RK_INLINE D8 sqrt(D8 a) { D8 r; RK_EACH_PART(double) r.p[i] = d2{std::sqrt(a.p[i][0]), std::sqrt(a.p[i][1])}; return r; }
+// max / min as x86's maxpd / minpd: the second operand where the first is NaN.
+RK_INLINE D8 max(D8 a, D8 b) { return select(gt(a, b), a, b); }
+RK_INLINE D8 min(D8 a, D8 b) { return select(lt(a, b), a, b); }
+// ceil / floor of values of magnitude below 2^31 (the callers clamp first), exact, without a call
+// to the C library where the target has no rounding instruction.
+RK_INLINE D8 trunc_small(D8 a) {
+    D8 r;
+    RK_EACH_PART(double) r.p[i] = d2{static_cast<double>(static_cast<int64_t>(a.p[i][0])),
+                                     static_cast<double>(static_cast<int64_t>(a.p[i][1]))};
+    return r;
+}
+RK_INLINE D8 ceil_small(D8 a) { const D8 t = trunc_small(a); return t + masked(lt(t, a), D8{{d2{} + 1.0, d2{} + 1.0, d2{} + 1.0, d2{} + 1.0}}); }
+RK_INLINE D8 floor_small(D8 a) { const D8 t = trunc_small(a); return t - masked(gt(t, a), D8{{d2{} + 1.0, d2{} + 1.0, d2{} + 1.0, d2{} + 1.0}}); }
+// Integral values in int32 range to int32.
+RK_INLINE void store_int32(int32_t* p, D8 a) {
+    RK_EACH_PART(double) for (int l = 0; l < 2; ++l) p[2 * i + l] = static_cast<int32_t>(a.p[i][l]);
+}
+// Sum of the 8 lanes in a fixed order (the AVX2 variant adds in the same order):
+// ((l0 + l4) + (l2 + l6)) + ((l1 + l5) + (l3 + l7)).
+RK_INLINE double hsum(D8 a) {
+    const d2 t01 = a.p[0] + a.p[2], t23 = a.p[1] + a.p[3];  // (l0 + l4, l1 + l5), (l2 + l6, l3 + l7)
+    const d2 u = t01 + t23;
+    return u[0] + u[1];
+}
+RK_INLINE double hsum(Vec<float> a) { return hsum(widen(a)); }
 
 struct Ops {
     template <typename T>
     using V = Vec<T>;
     using D = D8;
     using M = Mask;
-    using DM = Mask;  // mask for double lanes
+    using DM = Mask;  // selects of doubles take the lane mask directly
     template <typename T>
-    static RK_INLINE Vec<T> splat(T x) { Vec<T> r; RK_EACH_LANE r.v[l] = x; return r; }
+    static RK_INLINE Vec<T> splat(T x) { Vec<T> r; RK_EACH_PART(T) r.p[i] = typename Vec<T>::Part{} + x; return r; }
     template <typename T>
-    static RK_INLINE Vec<T> lane_index() { Vec<T> r; RK_EACH_LANE r.v[l] = static_cast<T>(l); return r; }
+    static RK_INLINE Vec<T> load(const T* p) { Vec<T> r; std::memcpy(r.p, p, sizeof r.p); return r; }
     template <typename T>
-    static RK_INLINE Vec<T> load(const T* p) { Vec<T> r; std::memcpy(r.v, p, sizeof r.v); return r; }
-    template <typename T>
-    static RK_INLINE void store(T* p, Vec<T> a) { std::memcpy(p, a.v, sizeof a.v); }
+    static RK_INLINE void store(T* p, Vec<T> a) { std::memcpy(p, a.p, sizeof a.p); }
     static RK_INLINE DM dmask(Mask m) { return m; }
     template <typename T>
-    static RK_INLINE Vec<T> narrow(D8 a) { Vec<T> r; RK_EACH_LANE r.v[l] = static_cast<T>(a.v[l]); return r; }
+    static RK_INLINE Vec<T> narrow(D8 a);
     // Lanes whose index lies in [lo, hi].
-    static RK_INLINE Mask span(int32_t lo, int32_t hi) { Mask r; RK_EACH_LANE r.v[l] = (l >= lo && l <= hi) ? -1 : 0; return r; }
-    // exp(-sigma) by the fast float exp (float32) or std::exp (float64, active lanes only).
+    static RK_INLINE Mask span(int32_t lo, int32_t hi) {
+        const Mask lane{{i4{0, 1, 2, 3}, i4{4, 5, 6, 7}}};
+        return and_not(and_not(Mask{{i4{} - 1, i4{} - 1}}, lt(lane, splat(lo))), lt(splat(hi), lane));
+    }
+    // exp(-sigma): the fast float exp of expf_detail (float32; the lanes are computed as the AVX2
+    // variant computes them), std::exp on the active lanes (float64).
     static RK_INLINE Vec<float> exp_neg(Vec<float> sigma, Mask) {
+        using namespace expf_detail;
         Vec<float> r;
-        RK_EACH_LANE r.v[l] = expf_detail::exp_lane(-sigma.v[l]);
+        RK_EACH_PART(float) {
+            f4 x = -sigma.p[i];
+            x = reinterpret_cast<f4>((reinterpret_cast<i4>(x) & (x > kLowest)) |
+                                     (reinterpret_cast<i4>(f4{} + kLowest) & ~(x > kLowest)));  // NaN -> kLowest
+            f4 k;
+            const f4 y = exp_poly(x, k, [](float v) { return f4{} + v; });
+            const u4 scale = u4{static_cast<uint32_t>(static_cast<int32_t>(k[0])), static_cast<uint32_t>(static_cast<int32_t>(k[1])),
+                                static_cast<uint32_t>(static_cast<int32_t>(k[2])), static_cast<uint32_t>(static_cast<int32_t>(k[3]))}
+                             << 23;
+            r.p[i] = reinterpret_cast<f4>(reinterpret_cast<u4>(y) + scale);
+        }
         return r;
     }
     static RK_INLINE Vec<double> exp_neg(Vec<double> sigma, Mask active) {
         Vec<double> r;
-        RK_EACH_LANE r.v[l] = active.v[l] ? std::exp(-sigma.v[l]) : 0.0;
+        RK_EACH_PART(double) {
+            const l2 q = double_part(active, i);
+            r.p[i] = d2{q[0] ? std::exp(-sigma.p[i][0]) : 0.0, q[1] ? std::exp(-sigma.p[i][1]) : 0.0};
+        }
         return r;
     }
-    static RK_INLINE int bits(Mask m) { int b = 0; RK_EACH_LANE b |= (m.v[l] != 0) << l; return b; }
+    static RK_INLINE int bits(Mask m) {
+        int b = 0;
+        RK_EACH_PART(int32_t) for (int l = 0; l < 4; ++l) b |= (m.p[i][l] != 0) << (4 * i + l);
+        return b;
+    }
 };
+template <>
+RK_INLINE Vec<float> Ops::narrow<float>(D8 a) {
+    Vec<float> r;
+    RK_EACH_PART(float) r.p[i] = f4{static_cast<float>(a.p[2 * i][0]), static_cast<float>(a.p[2 * i][1]),
+                                    static_cast<float>(a.p[2 * i + 1][0]), static_cast<float>(a.p[2 * i + 1][1])};
+    return r;
+}
+template <>
+RK_INLINE Vec<double> Ops::narrow<double>(D8 a) { return a; }
 
-#undef RK_EACH_LANE
+#undef RK_EACH_PART
 }  // namespace portable
 
 // ---- 8-lane operations, AVX2 variant (float32 only) --------------------------------------------
@@ -311,8 +418,8 @@ RK_AVX2 D8 widen(F8 a) {
     return {_mm256_cvtps_pd(_mm256_castps256_ps128(a.v)), _mm256_cvtps_pd(_mm256_extractf128_ps(a.v, 1))};
 }
 RK_AVX2 D8 sqrt(D8 a) { return {_mm256_sqrt_pd(a.lo), _mm256_sqrt_pd(a.hi)}; }
-RK_AVX2 D8 floor(D8 a) { return {_mm256_floor_pd(a.lo), _mm256_floor_pd(a.hi)}; }
-RK_AVX2 D8 ceil(D8 a) { return {_mm256_ceil_pd(a.lo), _mm256_ceil_pd(a.hi)}; }
+RK_AVX2 D8 floor_small(D8 a) { return {_mm256_floor_pd(a.lo), _mm256_floor_pd(a.hi)}; }
+RK_AVX2 D8 ceil_small(D8 a) { return {_mm256_ceil_pd(a.lo), _mm256_ceil_pd(a.hi)}; }
 RK_AVX2 D8 max(D8 a, D8 b) { return {_mm256_max_pd(a.lo, b.lo), _mm256_max_pd(a.hi, b.hi)}; }
 RK_AVX2 D8 min(D8 a, D8 b) { return {_mm256_min_pd(a.lo, b.lo), _mm256_min_pd(a.hi, b.hi)}; }
 RK_AVX2 void store_int32(int32_t* p, D8 a) {
@@ -337,8 +444,6 @@ struct Ops {
     static RK_AVX2 F8 splat(float x) { return {_mm256_set1_ps(x)}; }
     static RK_AVX2 I8 splat(int32_t x) { return {_mm256_set1_epi32(x)}; }
     static RK_AVX2 D8 splat(double x) { return {_mm256_set1_pd(x), _mm256_set1_pd(x)}; }
-    template <typename T>
-    static RK_AVX2 F8 lane_index() { return {_mm256_setr_ps(0, 1, 2, 3, 4, 5, 6, 7)}; }
     static RK_AVX2 F8 load(const float* p) { return {_mm256_loadu_ps(p)}; }
     static RK_AVX2 I8 load(const int32_t* p) { return {_mm256_loadu_si256(reinterpret_cast<const __m256i*>(p))}; }
     static RK_AVX2 D8 load(const double* p) { return {_mm256_loadu_pd(p), _mm256_loadu_pd(p + 4)}; }
@@ -620,8 +725,9 @@ inline bool gather_entry(const Problem& p, const Splat<scalar_t>* splats, const 
             const D disc = Ops::splat(g.span_c2a) - dy * dy * Ops::splat(g.det);
             const D half_width = sqrt(max(disc, zero)) * Ops::splat(g.inv_a);
             const D centre = Ops::splat(g.centre_x) - Ops::splat(g.b_over_a) * dy;
-            const D lo = min(max(ceil(centre - half_width) - one, col_lo), col_hi + one);
-            D hi = max(min(floor(centre + half_width) + one, col_hi), col_lo - one);
+            // Clamped to the footprint (+-1) before rounding: ceil and floor then see small values.
+            const D lo = ceil_small(min(max(centre - half_width, col_lo + one), col_hi + one + one)) - one;
+            D hi = floor_small(max(min(centre + half_width, col_hi - one), col_lo - one - one)) + one;
             hi = select(lt(disc, zero), col_lo - one, hi);  // no pixel of the row can pass
             store_int32(blk.span_lo.data() + t, lo);
             store_int32(blk.span_hi.data() + t, hi);
@@ -1440,34 +1546,35 @@ extern "C" int rk_isa_supported(int64_t isa) {
     return 0;
 }
 
-#if RK_HAVE_AVX2
+// o exp(-sigma) for float32 as the compositor computes it (fast exp, the C library's expf near
+// the alpha thresholds) with a given variant, and the C library's expf: test hooks for the exp.
 namespace {
-__attribute__((target("avx2"), flatten)) void exp_neg_avx2(const float* sigma, float* out) {
-    _mm256_storeu_ps(out, avx2::Ops::exp_neg(avx2::Ops::load(sigma), avx2::Ops::span(0, kLanes - 1)).v);
+template <typename Ops>
+inline void raw_alpha_chunk(const float* sigma, const float* o, float* out) {
+    typename Ops::template V<float> vis;
+    Ops::store(out, alpha_raw<Ops, float>(Ops::load(sigma), Ops::load(o), Ops::span(0, kLanes - 1), vis));
 }
-}  // namespace
-#endif
-
-// The compositor's exp(x) for float32 (x in [-87, 0]) with a given variant, and the C library's
-// expf, over n values: lets the tests check that the two agree bitwise.
-extern "C" int rk_exp_f32(const float* x, float* out, int64_t n, int64_t isa) {
-    if (isa != kIsaPortable && !(isa == kIsaAvx2 && avx2_supported())) return kIsaUnavailable;
-    float xs[kLanes], rs[kLanes];
-    for (int64_t i = 0; i < n; i += kLanes) {
-        const int64_t m = std::min<int64_t>(kLanes, n - i);
-        for (int l = 0; l < kLanes; ++l) xs[l] = l < m ? -x[i + l] : 0.0f;  // exp_neg takes sigma = -x
-        if (isa == kIsaPortable) {
-            portable::Vec<float> v;
-            std::memcpy(v.v, xs, sizeof xs);
-            const portable::Vec<float> r = portable::Ops::exp_neg(v, portable::Ops::span(0, kLanes - 1));
-            std::memcpy(rs, r.v, sizeof rs);
-        }
 #if RK_HAVE_AVX2
-        else {
-            exp_neg_avx2(xs, rs);
-        }
+__attribute__((target("avx2"), flatten)) void raw_alpha_chunk_avx2(const float* sigma, const float* o, float* out) {
+    raw_alpha_chunk<avx2::Ops>(sigma, o, out);
+}
 #endif
-        for (int64_t l = 0; l < m; ++l) out[i + l] = rs[l];
+}  // namespace
+
+extern "C" int rk_raw_alpha_f32(const float* sigma, const float* opacity, float* out, int64_t n, int64_t isa) {
+    if (isa != kIsaPortable && !(isa == kIsaAvx2 && avx2_supported())) return kIsaUnavailable;
+    for (int64_t i = 0; i < n; i += kLanes) {
+        float s[kLanes] = {0}, o[kLanes] = {0}, r[kLanes];
+        const int64_t m = std::min<int64_t>(kLanes, n - i);
+        std::copy(sigma + i, sigma + i + m, s);
+        std::copy(opacity + i, opacity + i + m, o);
+#if RK_HAVE_AVX2
+        if (isa == kIsaAvx2)
+            raw_alpha_chunk_avx2(s, o, r);
+        else
+#endif
+            raw_alpha_chunk<portable::Ops>(s, o, r);
+        std::copy(r, r + m, out + i);
     }
     return kOk;
 }
