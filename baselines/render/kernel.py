@@ -11,19 +11,23 @@ backward pass is bitwise deterministic across thread counts.
 
 Building. The kernel is a plain C++17 shared library without Python or torch headers, compiled
 with the system compiler (`$CXX`, else c++, g++ or clang++) on first use and loaded with ctypes;
-tensors are passed as raw pointers to contiguous memory. That takes about 2 s, where a
+tensors are passed as raw pointers to contiguous memory. That takes 5 to 10 s, where a
 `torch.utils.cpp_extension` build spends most of a minute parsing torch headers, and it needs no
 ninja. The flags are portable (-O3, no -march=native), so a cache shared by machines of one
-architecture stays valid. The library is cached under `$REFLOW4DGS_KERNEL_CACHE`, else
-`$XDG_CACHE_HOME/reflow4dgs/kernels`, else `~/.cache/reflow4dgs/kernels`, in a file named by a hash
-of the source, the compiler (path and `--version`), the flags and the platform; the torch version
-is not part of the key because the library does not link torch. Each build writes into a private
-temporary directory and is moved into place with an atomic rename, so processes that build at
-the same time (pytest-xdist, two trainings) never see a torn file.
+architecture stays valid: the AVX2 pixel loops are compiled as separate functions (a target
+attribute) and chosen at run time when the CPU has AVX2; every other CPU, and float64, runs the
+portable variant, which gives bitwise identical results. The library is cached under
+`$REFLOW4DGS_KERNEL_CACHE`, else `$XDG_CACHE_HOME/reflow4dgs/kernels`, else
+`~/.cache/reflow4dgs/kernels`, in a file named by a hash of the source, the compiler (path and
+`--version`), the flags and the platform; the torch version is not part of the key because the
+library does not link torch. Each build writes into a private temporary directory and is moved
+into place with an atomic rename, so processes that build at the same time (pytest-xdist, two
+trainings) never see a torn file.
 
 Switches: `REFLOW4DGS_CPU_KERNEL=0` (or false/off/no) makes the cpu backend use the torch tiled
 path. Without a compiler, or when the build fails, `kernel_available()` returns (False, reason)
-and the cpu backend falls back likewise, logging the reason once.
+and the cpu backend falls back likewise, logging the reason once. `REFLOW4DGS_KERNEL_ISA=portable`
+(or avx2; default auto) forces a variant of the pixel loops, for tests and comparisons.
 
 Dtypes: float32 and float64 both run compiled (the kernel is templated on the scalar type);
 bfloat16 and non-CPU tensors take the torch tiled path (float16 is rejected by validation).

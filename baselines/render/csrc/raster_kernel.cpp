@@ -10,39 +10,36 @@
 //   a pixel stops BEFORE the Gaussian whose contribution would bring transmittance to <= 1e-4
 //   image = sum_i f_i alpha_i T_i,  alpha_out = 1 - T_final
 //
-// Arithmetic mirrors the oracle so that every per-pair decision (the 1/255 skip, the 0.999 clamp,
-// the transmittance stop) is taken as the oracle takes it: sigma and alpha are evaluated in the
-// same operation order in the scalar type (the build uses -ffp-contract=off and no FMA, so no
-// fused operation changes the rounding), and transmittance is carried in double and rounded to
-// the scalar type where it is used, which is what torch.cumprod does on the CPU (it accumulates
-// float products in double).
+// Arithmetic mirrors the oracle: sigma and alpha are evaluated in the same operation order in the
+// scalar type (the build uses -ffp-contract=off and no FMA, so no fused operation changes the
+// rounding), and transmittance is carried in double and rounded to the scalar type where it is
+// used, which is what torch.cumprod does on the CPU (it accumulates float products in double).
 //
-// exp(): float32 alpha uses a vectorised exp (below, `exp_neg`) that returns exactly what the C
-// library's expf returns: it evaluates exp in double to ~1e-15 and rounds to float, and calls
-// expf itself for the ~1% of lanes whose double result lies within 2^-7 float ulp of a rounding
-// midpoint (the only places where a libm expf with < 0.504 ulp error can round differently).
-// That equality was checked exhaustively on all 1.09e9 floats in [-6, 0] (the range alpha needs:
-// sigma <= ln(255) + 1e-3) against glibc 2.36, and test_raster_kernel.py samples it on every
-// machine. float64 calls std::exp per lane.
+// exp(): float32 uses a fast vectorised exp (`expf_detail`, at most 1 ulp from the C library's
+// expf, equal to it in 96% of values; torch's own CPU exp, which the oracle uses, is within 1 ulp
+// of expf too). Where o exp(-sigma) lands within 2^-18 (relative) of 1/255 or 0.999, exp is
+// recomputed with expf (`alpha_raw`), so the skip and clamp decisions are exactly those of expf;
+// test_raster_kernel.py checks both properties on every machine. float64 calls std::exp.
 //
-// SIMD: the pixel loops work on 8 consecutive pixels of a tile row at a time (`Lanes`). Two
+// SIMD: the pixel loops work on 8 consecutive pixels of a tile row at a time (kLanes). Two
 // implementations of the 8-lane operations exist: AVX2 intrinsics, chosen at run time when the
-// CPU has AVX2, and a portable one (arrays of 8, auto-vectorised by the compiler) for every other
-// CPU and for float64. Both perform the same IEEE operations in the same order, so they give
-// bitwise identical results (tested). The build flags stay portable: only the functions of the
-// AVX2 variant are compiled for AVX2 (target attribute), and they run only after
+// CPU has AVX2 (float32), and a portable one on 16-byte GCC/Clang vector types (SSE2, NEON, ...)
+// for every other CPU and for float64. Both perform the same IEEE operations in the same order,
+// so they give bitwise identical results (tested). The build flags stay portable: only the AVX2
+// variant's functions are compiled for AVX2 (a target attribute), and they run only after
 // __builtin_cpu_supports("avx2").
 //
 // Binning (rk_bin_count / rk_bin_fill): the per-tile lists of tiles.bin_gaussians, built by a
-// counting sort over the visible Gaussians in stable depth order (see the section below).
+// radix sort of the visible Gaussians by depth and a counting sort into tiles (section below).
 //
 // Work split: tiles of tile_size x tile_size pixels; each tile is processed by one thread,
 // Gaussians in the outer loop (front to back), pixels inner. For each row of a Gaussian's
 // bounding box inside the tile, only the span of columns where sigma can pass the cutoff is
 // visited: the ellipse sigma <= ln(255 o) + margin, solved per row in double and widened by a
-// bound on the float rounding of sigma plus one pixel (`row_span`), so every pixel the exact
+// bound on the float rounding of sigma plus one pixel (`gather_entry`), so every pixel the exact
 // per-pixel test could accept is visited; the exact test still decides. Each pixel sees its
 // Gaussians in the same front-to-back order, so its arithmetic is that of a pixel-major loop.
+// The section "Per-tile blocks" explains how the loops are staged for the CPU.
 //
 // Backward walks each pixel's list back to front from its last contributor, recovering the
 // transmittance by division (T_i = T_{i+1} / (1 - alpha_i), as 3DGS and gsplat do; in double).
