@@ -896,6 +896,7 @@ inline void forward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, i
             for (int64_t ci = c0; ci < std::min(num_chunks, c0 + kStageChunks); ++ci) {
                 const Chunk<scalar_t>& ch = blk.chunks[ci];
                 M m = and_not(Ops::span(ch.lo, ch.hi), Ops::load(s.done.data() + ch.row * p.row_stride + ch.start));
+                if (!any(m)) continue;  // all its pixels have stopped
                 const ChunkEval<Ops, scalar_t> ev = evaluate_chunk<Ops>(blk, ch, s.px.data(), m);
                 Ops::store(s.stage_alpha.data() + staged * kLanes, ev.alpha);
                 s.stage_chunk[staged] = ci;
@@ -1063,6 +1064,7 @@ inline void backward_tile_impl(const Problem& p, const Splat<scalar_t>* splats, 
                 const M position = Ops::splat(static_cast<int32_t>(blk.k[ch.entry] - begin));
                 // Lanes in front of their pixel's last contributor.
                 M m = Ops::span(ch.lo, ch.hi) & lt(position, Ops::load(s.last.data() + ch.row * p.row_stride + ch.start));
+                if (!any(m)) continue;  // behind the last contributor of all its pixels
                 const ChunkEval<Ops, scalar_t> ev = evaluate_chunk<Ops>(blk, ch, s.px.data(), m);
                 Ops::store(s.stage_alpha.data() + staged * kLanes, ev.alpha);
                 Ops::store(s.stage_vis.data() + staged * kLanes, masked(m & ev.unclamped, ev.vis));
