@@ -436,6 +436,10 @@ RK_AVX2 double hsum(D8 a) {  // the order of portable::hsum
     return _mm_cvtsd_f64(_mm_add_sd(u, _mm_unpackhi_pd(u, u)));
 }
 
+struct SplatF8 {  // (a functor rather than a lambda: portable across compilers with the attribute)
+    RK_AVX2 F8 operator()(float v) const { return {_mm256_set1_ps(v)}; }
+};
+
 struct Ops {
     template <typename T>
     using V = F8;  // float32 only
@@ -471,7 +475,7 @@ struct Ops {
         using namespace expf_detail;
         const __m256 x = _mm256_max_ps(_mm256_xor_ps(sigma.v, _mm256_set1_ps(-0.0f)), _mm256_set1_ps(kLowest));
         F8 k;
-        const F8 y = exp_poly(F8{x}, k, [](float v) __attribute__((target("avx2"))) { return F8{_mm256_set1_ps(v)}; });
+        const F8 y = exp_poly(F8{x}, k, SplatF8{});
         const __m256i scale = _mm256_slli_epi32(_mm256_cvttps_epi32(k.v), 23);
         return {_mm256_castsi256_ps(_mm256_add_epi32(_mm256_castps_si256(y.v), scale))};
     }
