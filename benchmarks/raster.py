@@ -3,6 +3,7 @@
     python benchmarks/raster.py                                     # default sizes, 1 and 2 threads
     python benchmarks/raster.py --threads 1 2 --repeats 5
     python benchmarks/raster.py --sizes 20000x256x256 --threads 2 --only kernel,torch_tiled
+    python benchmarks/raster.py --sizes 2000x128x96:init                # a freshly initialised model
 
 Every implementation renders the same scene through the whole pipeline a training step pays for:
 torch projection, compositing of the features plus the depth channel, and (fwd+bwd) the backward
@@ -48,7 +49,8 @@ from baselines.render.backends import Backend, gsplat_unavailable_reason  # noqa
 from baselines.render.composite_tiled import composite_tiled  # noqa: E402
 from baselines.render.projection import project_gaussians_torch  # noqa: E402
 
-DEFAULT_SIZES = "2000x128x128,20000x256x256,100000x512x512"
+DEFAULT_SIZES = "2000x128x128,20000x256x256,100000x512x512,2000x128x96:init"
+SCENE_KINDS = ("trained", "init")
 PARAMS = ("means", "quats", "scales", "opacities", "features")
 
 
@@ -76,13 +78,18 @@ class Scene:
                      **fresh)
 
 
-def make_scene(n: int, width: int, height: int, seed: int = 0) -> Scene:
-    """N Gaussians as a trained model shows them to a training camera.
+def make_scene(n: int, width: int, height: int, seed: int = 0, kind: str = "trained") -> Scene:
+    """N Gaussians as a model shows them to a training camera.
 
-    Spread over the view frustum (10% beyond each border) at depths 2..8, screen-space standard
-    deviation log-uniform in [0.5, 3] px, anisotropic, randomly rotated, opacities uniform in
-    [0.05, 0.95], RGB features.
+    Spread over the view frustum (10% beyond each border) at depths 2..8, anisotropic, randomly
+    rotated, RGB features. kind "trained": screen-space standard deviation log-uniform in
+    [0.5, 3] px, opacities uniform in [0.05, 0.95] (a trained model). kind "init": standard
+    deviation log-uniform in [4, 8] px (radii of about 20 px), opacity 0.1, as a freshly
+    initialised model shows them: large, faint, every pixel under hundreds of Gaussians and
+    almost none reaching the transmittance stop.
     """
+    if kind not in SCENE_KINDS:
+        raise ValueError(f"scene kind must be one of {SCENE_KINDS}, got {kind!r}")
     g = torch.Generator().manual_seed(seed)
     f = float(width)
     K = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
@@ -90,11 +97,12 @@ def make_scene(n: int, width: int, height: int, seed: int = 0) -> Scene:
     u = torch.empty(n).uniform_(-0.1 * width, 1.1 * width, generator=g)
     v = torch.empty(n).uniform_(-0.1 * height, 1.1 * height, generator=g)
     means = torch.stack([(u - K[0, 2]) / f * z, (v - K[1, 2]) / f * z, z], dim=-1)
-    sigma_px = torch.exp(torch.empty(n, 1).uniform_(math.log(0.5), math.log(3.0), generator=g))
+    sigma_range = (0.5, 3.0) if kind == "trained" else (4.0, 8.0)
+    sigma_px = torch.exp(torch.empty(n, 1).uniform_(*(math.log(x) for x in sigma_range), generator=g))
     aniso = torch.exp(torch.empty(n, 3).uniform_(-0.7, 0.7, generator=g))
-    return Scene(means, torch.randn(n, 4, generator=g), sigma_px * aniso * z[:, None] / f,
-                 torch.empty(n).uniform_(0.05, 0.95, generator=g), torch.rand(n, 3, generator=g),
-                 torch.eye(4), K, width, height)
+    opacities = torch.empty(n).uniform_(0.05, 0.95, generator=g) if kind == "trained" else torch.full((n,), 0.1)
+    return Scene(means, torch.randn(n, 4, generator=g), sigma_px * aniso * z[:, None] / f, opacities,
+                 torch.rand(n, 3, generator=g), torch.eye(4), K, width, height)
 
 
 Render = Callable[[Scene, int], "tuple[torch.Tensor, ...]"]  # (scene, threads) -> (image, depth, alpha)
@@ -237,10 +245,10 @@ def _load() -> str:
     return "/".join(f"{v:.2f}" for v in os.getloadavg()) + " (1/5/15 min)"
 
 
-def _label(scene: Scene) -> str:
+def _label(scene: Scene, kind: str) -> str:
     n = scene.means.shape[0]
-    return f"{n // 1000}k, {scene.width}x{scene.height}" if n >= 1000 and n % 1000 == 0 else \
-        f"{n}, {scene.width}x{scene.height}"
+    count = f"{n // 1000}k" if n >= 1000 and n % 1000 == 0 else f"{n}"
+    return f"{count}, {scene.width}x{scene.height}" + ("" if kind == "trained" else f", {kind}")
 
 
 def _speedup(medians: dict, skipped: dict, name: str) -> str:
@@ -255,7 +263,8 @@ def _speedup(medians: dict, skipped: dict, name: str) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--sizes", default=DEFAULT_SIZES, help="comma-separated NxWIDTHxHEIGHT scenes")
+    parser.add_argument("--sizes", default=DEFAULT_SIZES,
+                        help="comma-separated NxWIDTHxHEIGHT scenes, each optionally :init (see make_scene)")
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="thread counts, all in this run")
     parser.add_argument("--repeats", type=int, default=5, help="timed calls per cell (median reported)")
     parser.add_argument("--reference-max-pairs", type=float, default=5e7,
@@ -271,7 +280,7 @@ def main(argv: list[str] | None = None) -> None:
     ok, where = kernel.kernel_available()
     print(f"machine: {_cpu_name()}, {os.cpu_count()} cores; torch {torch.__version__}; "
           f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', '(unset)')}")
-    print(f"kernel: {where if ok else 'unavailable: ' + where}")
+    print(f"kernel: {where} ({kernel.kernel_isa()} pixel loops for float32)" if ok else f"kernel: unavailable: {where}")
     if args.compile:
         print(f"cold kernel build: {time_cold_build():.2f} s")
     print(f"load average at start: {_load()}")
@@ -282,8 +291,11 @@ def main(argv: list[str] | None = None) -> None:
           "| fwd+bwd CPU ms | speed-up (fwd / fwd+bwd) |")
     print("|---|---:|---|---:|---:|---:|---:|---|")
     for size in args.sizes.split(","):
-        n, w, h = (int(v) for v in size.lower().split("x"))
-        scene = make_scene(n, w, h)
+        dims, _, kind = size.lower().partition(":")
+        kind = kind or "trained"
+        n, w, h = (int(v) for v in dims.split("x"))
+        scene = make_scene(n, w, h, kind=kind)
+        label = _label(scene, kind)
         runnable, skipped = [], {}
         for impl in impls:
             reason = impl.unavailable()
@@ -298,10 +310,10 @@ def main(argv: list[str] | None = None) -> None:
             medians = {name: t.medians_ms() for name, t in timings.items()}
             for impl in impls:
                 if impl.name in skipped:
-                    print(f"| {_label(scene)} | {threads} | {impl.name} | - | - | - | - | {skipped[impl.name]} |")
+                    print(f"| {label} | {threads} | {impl.name} | - | - | - | - | {skipped[impl.name]} |")
                     continue
                 f_ms, b_ms, fc_ms, bc_ms = medians[impl.name]
-                print(f"| {_label(scene)} | {threads} | {impl.name} | {f_ms:.1f} | {b_ms:.1f} | {fc_ms:.1f} | "
+                print(f"| {label} | {threads} | {impl.name} | {f_ms:.1f} | {b_ms:.1f} | {fc_ms:.1f} | "
                       f"{bc_ms:.1f} | {_speedup(medians, skipped, impl.name)} |", flush=True)
     print(f"\nload average at end: {_load()}")
 

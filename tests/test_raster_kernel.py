@@ -3,8 +3,10 @@
 Its values and gradients against the dense reference are tested with every other CPU compositor
 by the shared parametrised tests (tests/raster_cases.py: CPU_COMPOSITORS): test_raster_backends.py,
 test_raster_hard_cases.py and test_raster_handworked.py. Here: compiled binning == torch binning,
-bitwise determinism across thread counts, the environment switch and the fallback to the torch
-tiled path, and building, caching and failing to build the library.
+bitwise determinism across thread counts and across the AVX2 and portable variants, the fast exp
+(its accuracy, and alpha decisions at the thresholds taken as with the C library's expf), the
+environment switches and the fallback to the torch tiled path, and building, caching and failing
+to build the library.
 """
 from __future__ import annotations
 
@@ -64,6 +66,95 @@ def test_bitwise_identical_across_thread_counts(compiled):
     for run in runs[1:]:
         for key, value in runs[0].items():
             assert torch.equal(value, run[key]), f"{key} differs between thread counts"
+
+
+# ---------------------------------------------------------------------------------------------
+# Instruction-set variants and the fast exp
+
+
+def _require_avx2():
+    if not kernel.isa_supported("avx2"):
+        pytest.skip("this CPU has no AVX2; only the portable variant runs")
+
+
+@pytest.mark.parametrize("case", ["deep_500g_40x23_c3", "needles_and_giants", "stack_1000_depth_ties"])
+def test_avx2_and_portable_variants_are_bitwise_identical(compiled, monkeypatch, case):
+    # Both variants run the same IEEE operations in the same order (lanes, sums, exp), so where
+    # the build machine has AVX2, the portable fallback is exercised by this comparison.
+    _require_avx2()
+    runs = {}
+    for isa in ("portable", "avx2"):
+        monkeypatch.setenv(kernel.ENV_ISA, isa)
+        assert kernel.kernel_isa(torch.float32) == isa
+        runs[isa] = composite_grads(kernel.composite_kernel, named_scene(case))
+    for key, value in runs["portable"].items():
+        assert torch.equal(value, runs["avx2"][key]), f"{key} differs between the portable and AVX2 variants"
+
+
+def test_isa_switch_is_validated_and_float64_runs_portable(compiled, monkeypatch):
+    monkeypatch.setenv(kernel.ENV_ISA, "avx512")
+    with pytest.raises(ValueError, match=kernel.ENV_ISA):
+        kernel.kernel_isa()
+    monkeypatch.setenv(kernel.ENV_ISA, "auto")
+    assert kernel.kernel_isa(torch.float64) == "portable"
+    assert kernel.kernel_isa(torch.float32) == ("avx2" if kernel.isa_supported("avx2") else "portable")
+
+
+def _raw_alpha(sigma: torch.Tensor, opacity: torch.Tensor, isa: str) -> torch.Tensor:
+    """o exp(-sigma) in float32 as the compositor computes it, with the given variant."""
+    sigma, opacity = sigma.float().contiguous(), opacity.float().contiguous()
+    out = torch.empty_like(sigma)
+    status = kernel.load_library().rk_raw_alpha_f32(sigma.data_ptr(), opacity.data_ptr(), out.data_ptr(),
+                                                    sigma.numel(), kernel.ISA_CODES[isa])
+    assert status == 0
+    return out
+
+
+def _libm_raw_alpha(sigma: torch.Tensor, opacity: torch.Tensor) -> torch.Tensor:
+    """o expf(-sigma) with the C library's expf, the product rounded to float32."""
+    x = (-sigma).float().contiguous()
+    vis = torch.empty_like(x)
+    kernel.load_library().rk_libm_expf(x.data_ptr(), vis.data_ptr(), x.numel())
+    return opacity.float() * vis
+
+
+def _isas() -> list[str]:
+    return ["portable", "avx2"] if kernel.isa_supported("avx2") else ["portable"]
+
+
+def test_fast_exp_is_within_one_ulp_of_the_c_library(compiled):
+    g = torch.Generator().manual_seed(0)
+    sigma = torch.rand(200_000, generator=g) * 5.6  # the range alpha >= 1/255 allows
+    opacity = torch.ones_like(sigma)
+    want = _libm_raw_alpha(sigma, opacity)
+    ulp = torch.nextafter(want, torch.tensor(float("inf"))) - want
+    for isa in _isas():
+        got = _raw_alpha(sigma, opacity, isa)
+        assert ((got - want).abs() <= ulp).all(), f"{isa}: the fast exp is off by more than 1 ulp"
+    assert torch.equal(_raw_alpha(torch.zeros(9), torch.full((9,), 0.5), "portable"), torch.full((9,), 0.5))
+
+
+@pytest.mark.parametrize("threshold", [1.0 / 255.0, 0.999])
+def test_alpha_decisions_at_the_thresholds_are_those_of_the_c_library_expf(compiled, threshold):
+    # sigma within +-16 float steps of ln(o / threshold), so that o exp(-sigma) lands within a few
+    # ulp of the threshold on both sides; the fast exp alone (about 1 ulp off in 5% of values)
+    # would flip some of these decisions, the expf recomputation in the band must not.
+    t = torch.tensor(threshold, dtype=torch.float32)
+    g = torch.Generator().manual_seed(1)
+    low = float(t) * 1.0001
+    opacity = (low + (1.0 - low) * torch.rand(4000, generator=g)).float()
+    centre = torch.log(opacity.double() / float(t)).float()
+    ulp = torch.nextafter(centre, torch.tensor(float("inf"))) - centre
+    sigma = centre[:, None] + torch.arange(-16, 17, dtype=torch.float32) * ulp[:, None]
+    opacity = opacity[:, None].expand_as(sigma).contiguous()
+    sigma = sigma.clamp(min=0).contiguous()
+    want = _libm_raw_alpha(sigma, opacity)
+    below = want < t if threshold < 0.5 else want > t  # skipped / clamped by the exact expf
+    assert below.any() and (~below).any()
+    for isa in _isas():
+        got = _raw_alpha(sigma, opacity, isa)
+        got_below = got < t if threshold < 0.5 else got > t
+        assert torch.equal(got_below, below), f"{isa}: {int((got_below != below).sum())} decisions differ"
 
 
 # ---------------------------------------------------------------------------------------------

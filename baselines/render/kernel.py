@@ -11,19 +11,23 @@ backward pass is bitwise deterministic across thread counts.
 
 Building. The kernel is a plain C++17 shared library without Python or torch headers, compiled
 with the system compiler (`$CXX`, else c++, g++ or clang++) on first use and loaded with ctypes;
-tensors are passed as raw pointers to contiguous memory. That takes about 2 s, where a
+tensors are passed as raw pointers to contiguous memory. That takes 5 to 10 s, where a
 `torch.utils.cpp_extension` build spends most of a minute parsing torch headers, and it needs no
 ninja. The flags are portable (-O3, no -march=native), so a cache shared by machines of one
-architecture stays valid. The library is cached under `$REFLOW4DGS_KERNEL_CACHE`, else
-`$XDG_CACHE_HOME/reflow4dgs/kernels`, else `~/.cache/reflow4dgs/kernels`, in a file named by a hash
-of the source, the compiler (path and `--version`), the flags and the platform; the torch version
-is not part of the key because the library does not link torch. Each build writes into a private
-temporary directory and is moved into place with an atomic rename, so processes that build at
-the same time (pytest-xdist, two trainings) never see a torn file.
+architecture stays valid: the AVX2 pixel loops are compiled as separate functions (a target
+attribute) and chosen at run time when the CPU has AVX2; every other CPU, and float64, runs the
+portable variant, which gives bitwise identical results. The library is cached under
+`$REFLOW4DGS_KERNEL_CACHE`, else `$XDG_CACHE_HOME/reflow4dgs/kernels`, else
+`~/.cache/reflow4dgs/kernels`, in a file named by a hash of the source, the compiler (path and
+`--version`), the flags and the platform; the torch version is not part of the key because the
+library does not link torch. Each build writes into a private temporary directory and is moved
+into place with an atomic rename, so processes that build at the same time (pytest-xdist, two
+trainings) never see a torn file.
 
 Switches: `REFLOW4DGS_CPU_KERNEL=0` (or false/off/no) makes the cpu backend use the torch tiled
 path. Without a compiler, or when the build fails, `kernel_available()` returns (False, reason)
-and the cpu backend falls back likewise, logging the reason once.
+and the cpu backend falls back likewise, logging the reason once. `REFLOW4DGS_KERNEL_ISA=portable`
+(or avx2; default auto) forces a variant of the pixel loops, for tests and comparisons.
 
 Dtypes: float32 and float64 both run compiled (the kernel is templated on the scalar type);
 bfloat16 and non-CPU tensors take the torch tiled path (float16 is rejected by validation).
@@ -54,8 +58,11 @@ logger = logging.getLogger(__name__)
 ENV_SWITCH = "REFLOW4DGS_CPU_KERNEL"
 ENV_CACHE_DIR = "REFLOW4DGS_KERNEL_CACHE"
 ENV_COMPILER = "CXX"
+ENV_ISA = "REFLOW4DGS_KERNEL_ISA"
+# Instruction-set variants of the kernel's pixel loops (the `isa` argument of its entry points).
+ISA_CODES = {"auto": 0, "portable": 1, "avx2": 2}
 SOURCE = Path(__file__).resolve().parent / "csrc" / "raster_kernel.cpp"
-ABI_VERSION = 1  # must equal kAbiVersion in the C++ source
+ABI_VERSION = 2  # must equal kAbiVersion in the C++ source
 CXX_FLAGS = ("-O3", "-std=c++17", "-shared", "-fPIC", "-ffp-contract=off", "-pthread")
 COMPILE_TIMEOUT_S = 600
 _SUPPORTED_DTYPES = {torch.float32: "f32", torch.float64: "f64"}
@@ -141,7 +148,7 @@ def _build(compiler: str, target: Path) -> None:
 
 def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
     ptr, i64 = ctypes.c_void_p, ctypes.c_int64
-    common = [ptr, ptr, ptr, ptr, ptr, i64, i64, ptr, ptr, i64, i64, i64, i64]
+    common = [ptr, ptr, ptr, ptr, ptr, i64, i64, ptr, ptr, i64, i64, i64, i64, i64]
     for suffix in _SUPPORTED_DTYPES.values():
         forward = getattr(lib, f"rk_forward_{suffix}")
         forward.argtypes = common + [ptr, ptr, ptr, ptr]
@@ -155,6 +162,12 @@ def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
         fill = getattr(lib, f"rk_bin_fill_{suffix}")
         fill.argtypes = [ptr, ptr, ptr, ptr, i64, i64, i64, i64, ptr, ptr]
         fill.restype = ctypes.c_int
+    lib.rk_isa_supported.argtypes = [i64]
+    lib.rk_isa_supported.restype = ctypes.c_int
+    lib.rk_raw_alpha_f32.argtypes = [ptr, ptr, ptr, i64, i64]
+    lib.rk_raw_alpha_f32.restype = ctypes.c_int
+    lib.rk_libm_expf.argtypes = [ptr, ptr, i64]
+    lib.rk_libm_expf.restype = None
     lib.rk_abi_version.argtypes = []
     lib.rk_abi_version.restype = ctypes.c_int
     version = lib.rk_abi_version()
@@ -250,7 +263,7 @@ def _ptr(t: Tensor) -> int:
 class _CompositeKernel(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, features, radii, offsets, gaussian_ids,
-                width: int, height: int, tile_size: int, num_threads: int):
+                width: int, height: int, tile_size: int, num_threads: int, isa: int):
         lib = load_library()
         suffix = _SUPPORTED_DTYPES[features.dtype]
         means2d, conics, opacities, features = (t.detach().contiguous() for t in (means2d, conics, opacities, features))
@@ -264,52 +277,95 @@ class _CompositeKernel(torch.autograd.Function):
         last = torch.empty(height, width, dtype=torch.int32)
         status = getattr(lib, f"rk_forward_{suffix}")(
             _ptr(means2d), _ptr(conics), _ptr(opacities), _ptr(features), _ptr(radii), n, channels,
-            _ptr(offsets), _ptr(gaussian_ids), width, height, tile_size, num_threads,
+            _ptr(offsets), _ptr(gaussian_ids), width, height, tile_size, num_threads, isa,
             _ptr(image), _ptr(alpha), _ptr(transmittance), _ptr(last),
         )
         _check_status(status, "forward")
         ctx.save_for_backward(means2d, conics, opacities, features, radii, offsets, gaussian_ids, transmittance, last)
-        ctx.geometry = (width, height, tile_size, num_threads)
+        ctx.geometry = (width, height, tile_size, num_threads, isa)
         return image, alpha
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_image, grad_alpha):
         means2d, conics, opacities, features, radii, offsets, gaussian_ids, transmittance, last = ctx.saved_tensors
-        width, height, tile_size, num_threads = ctx.geometry
+        width, height, tile_size, num_threads, isa = ctx.geometry
         lib = load_library()
         suffix = _SUPPORTED_DTYPES[features.dtype]
         n, channels = features.shape
         grad_image = grad_image.to(features.dtype).contiguous()
         grad_alpha = grad_alpha.to(features.dtype).contiguous()
-        g_means2d = torch.zeros_like(means2d)
-        g_conics = torch.zeros_like(conics)
-        g_opacities = torch.zeros_like(opacities)
-        g_features = torch.zeros_like(features)
+        # The kernel writes every entry (zero for Gaussians that touch no pixel).
+        g_means2d = torch.empty_like(means2d)
+        g_conics = torch.empty_like(conics)
+        g_opacities = torch.empty_like(opacities)
+        g_features = torch.empty_like(features)
         status = getattr(lib, f"rk_backward_{suffix}")(
             _ptr(means2d), _ptr(conics), _ptr(opacities), _ptr(features), _ptr(radii), n, channels,
-            _ptr(offsets), _ptr(gaussian_ids), width, height, tile_size, num_threads,
+            _ptr(offsets), _ptr(gaussian_ids), width, height, tile_size, num_threads, isa,
             _ptr(transmittance), _ptr(last), _ptr(grad_image), _ptr(grad_alpha),
             _ptr(g_means2d), _ptr(g_conics), _ptr(g_opacities), _ptr(g_features),
         )
         _check_status(status, "backward")
         needs = ctx.needs_input_grad
         grads = (g_means2d, g_conics, g_opacities, g_features)
-        return tuple(g if needs[i] else None for i, g in enumerate(grads)) + (None,) * 7
+        return tuple(g if needs[i] else None for i, g in enumerate(grads)) + (None,) * 8
 
 
 def _check_status(status: int, stage: str) -> None:
     if status == 2:
         raise MemoryError(f"the compiled CPU kernel ran out of memory in its {stage} pass")
+    if status == 4:
+        raise RuntimeError(f"the compiled CPU kernel's {stage} pass was asked for an instruction set this CPU lacks")
     if status != 0:
         raise RuntimeError(f"the compiled CPU kernel failed in its {stage} pass (status {status})")
+
+
+def requested_isa() -> str:
+    """The kernel variant asked for by $REFLOW4DGS_KERNEL_ISA: "auto" (default), "portable" or "avx2".
+
+    Raises:
+        ValueError: the variable holds another value.
+    """
+    value = os.environ.get(ENV_ISA, "").strip().lower() or "auto"
+    if value not in ISA_CODES:
+        raise ValueError(f"{ENV_ISA}={os.environ[ENV_ISA]!r} is not one of {', '.join(ISA_CODES)}")
+    return value
+
+
+def isa_supported(isa: str) -> bool:
+    """Whether this CPU can run the kernel variant `isa` ("portable" always can).
+
+    Raises:
+        KernelUnavailable: the kernel cannot be built or loaded.
+    """
+    return bool(load_library().rk_isa_supported(ISA_CODES[isa]))
+
+
+def kernel_isa(dtype: torch.dtype = torch.float32) -> str:
+    """The variant of the pixel loops that runs for tensors of `dtype`: "avx2" or "portable".
+
+    "auto" picks AVX2 for float32 where the CPU has it; float64 always runs the portable
+    variant. Both give bitwise identical results.
+
+    Raises:
+        ValueError: $REFLOW4DGS_KERNEL_ISA is invalid, or asks for AVX2 on a CPU without it.
+        KernelUnavailable: the kernel cannot be built or loaded.
+    """
+    isa = requested_isa()
+    if isa == "avx2" and not isa_supported("avx2"):
+        raise ValueError(f"{ENV_ISA}=avx2 but this CPU does not support AVX2")
+    if isa == "auto":
+        isa = "avx2" if dtype == torch.float32 and isa_supported("avx2") else "portable"
+    return "portable" if dtype != torch.float32 else isa
 
 
 def bin_gaussians_compiled(projection: Projection, width: int, height: int, tile_size: int = TILE_SIZE) -> TileBins:
     """Compiled equivalent of tiles.bin_gaussians: the same per-tile, front-to-back lists.
 
-    A counting sort in C++ (O(N log N + M) for M intersections) instead of torch's sort of all
-    intersection keys; it also avoids a dozen small torch ops per view.
+    A radix sort by depth and a counting sort into tiles in C++ (O(N + M) for M intersections)
+    instead of torch's sort of all intersection keys; it also avoids a dozen small torch ops per
+    view.
 
     Args:
         projection: CPU projection of N Gaussians (means2d, radii, depths, visible are read).
@@ -384,8 +440,9 @@ def composite_kernel(
     threads = int(num_threads) if num_threads is not None else torch.get_num_threads()
     if threads < 1:
         raise ValueError(f"num_threads must be >= 1, got {threads}")
+    isa = ISA_CODES[kernel_isa(dtype)]
     bins = bin_gaussians_compiled(projection, int(width), int(height))
     return _CompositeKernel.apply(
         projection.means2d, projection.conics, opacities, features, projection.radii, bins.offsets,
-        bins.gaussian_ids, int(width), int(height), bins.tile_size, threads,
+        bins.gaussian_ids, int(width), int(height), bins.tile_size, threads, isa,
     )
