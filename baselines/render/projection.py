@@ -5,6 +5,7 @@ own CUDA version with the same rules). It follows gsplat's EWA projection:
 
     p = R mu + t                                      camera-space mean
     Sigma_cam = R (Rq S S Rq^T) R^T                   3D covariance in camera axes
+    (computed as T T^T with T = J R Rq S, elementwise; see the comment in the function)
     J = [[fx/z, 0, -fx tx/z^2], [0, fy/z, -fy ty/z^2]] with tx/z, ty/z clamped to 1.3x the half FOV
     Sigma_2d = J Sigma_cam J^T + eps2d I              (the "blur" keeps tiny Gaussians >= ~1 px)
 
@@ -138,18 +139,23 @@ def project_gaussians_torch(
     tx = z_safe * torch.minimum(lim_x_pos, torch.maximum(-lim_x_neg, x_safe / z_safe))
     ty = z_safe * torch.minimum(lim_y_pos, torch.maximum(-lim_y_neg, y_safe / z_safe))
 
-    zeros = torch.zeros_like(z_safe)
-    J = torch.stack(
-        [fx / z_safe, zeros, -fx * tx / z_safe**2, zeros, fy / z_safe, -fy * ty / z_safe**2], dim=-1
-    ).reshape(-1, 2, 3)
+    # cov2d = J R Rq S S Rq^T R^T J^T = T T^T with T = J R Rq S ([N, 2, 3]). J's two rows are
+    # combinations of R's rows, so T's rows are built elementwise: no batched 3x3 matmuls, whose
+    # per-call overhead dominated the projection (forward and backward) on CPU.
+    j_x, j_xz = fx / z_safe, -fx * tx / z_safe**2  # J row 0 = (j_x, 0, j_xz)
+    j_y, j_yz = fy / z_safe, -fy * ty / z_safe**2  # J row 1 = (0, j_y, j_yz)
+    row0 = j_x.unsqueeze(1) * R[0] + j_xz.unsqueeze(1) * R[2]  # [N, 3] = (J R)[0]
+    row1 = j_y.unsqueeze(1) * R[1] + j_yz.unsqueeze(1) * R[2]
+    rot_scaled = quat_to_rotmat(quats) * scales.unsqueeze(-2)  # Rq diag(s), [N, 3, 3]
+    t0 = (row0.unsqueeze(2) * rot_scaled).sum(dim=1)  # [N, 3] = (J R Rq S)[0]
+    t1 = (row1.unsqueeze(2) * rot_scaled).sum(dim=1)
+    a0, c0 = (t0 * t0).sum(dim=1), (t1 * t1).sum(dim=1)
+    a, b, c = a0 + eps2d, (t0 * t1).sum(dim=1), c0 + eps2d
+    cov2d = torch.stack([a, b, b, c], dim=-1).reshape(-1, 2, 2)
+    # det(T T^T + eps I) without the cancellation of a*c - b^2 (needle-like Gaussians have
+    # a*c ~ b^2): |t0|^2 |t1|^2 - (t0.t1)^2 = |t0 x t1|^2 (Lagrange's identity).
+    det = (torch.linalg.cross(t0, t1) ** 2).sum(dim=1) + eps2d * (a0 + c0) + eps2d * eps2d
 
-    cov_world = covariance_3d(quats, scales)
-    cov_cam = R @ cov_world @ R.T
-    cov2d = J @ cov_cam @ J.transpose(-1, -2)
-    cov2d = cov2d + eps2d * torch.eye(2, dtype=dtype, device=means.device)
-
-    a, b, c = cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]
-    det = a * c - b * b
     finite = torch.isfinite(cov2d).flatten(1).all(dim=1) & torch.isfinite(p_cam).all(dim=1)
     ok = in_depth_range & finite & (det > 0)
     det_safe = torch.where(ok, det, torch.ones_like(det))
