@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import platform
 import statistics
 import sys
 import tempfile
@@ -44,6 +43,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from baselines.render import kernel, rasterize  # noqa: E402
+from machine import cpu_model, load_average  # noqa: E402  (benchmarks/machine.py)
 from baselines.render.api import _composite  # noqa: E402
 from baselines.render.backends import Backend, gsplat_unavailable_reason  # noqa: E402
 from baselines.render.composite_tiled import composite_tiled  # noqa: E402
@@ -231,20 +231,6 @@ def time_cold_build() -> float:
                 os.environ[kernel.ENV_CACHE_DIR] = old
 
 
-def _cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def _load() -> str:
-    return "/".join(f"{v:.2f}" for v in os.getloadavg()) + " (1/5/15 min)"
-
-
 def _label(scene: Scene, kind: str) -> str:
     n = scene.means.shape[0]
     count = f"{n // 1000}k" if n >= 1000 and n % 1000 == 0 else f"{n}"
@@ -278,12 +264,12 @@ def main(argv: list[str] | None = None) -> None:
     impls = [i for i in implementations(args.reference_max_pairs) if not wanted or i.name in wanted]
 
     ok, where = kernel.kernel_available()
-    print(f"machine: {_cpu_name()}, {os.cpu_count()} cores; torch {torch.__version__}; "
+    print(f"machine: {cpu_model()}, {os.cpu_count()} cores; torch {torch.__version__}; "
           f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', '(unset)')}")
     print(f"kernel: {where} ({kernel.kernel_isa()} pixel loops for float32)" if ok else f"kernel: unavailable: {where}")
     if args.compile:
         print(f"cold kernel build: {time_cold_build():.2f} s")
-    print(f"load average at start: {_load()}")
+    print(f"load average at start: {load_average('/')} (1/5/15 min)")
     print(f"median of {args.repeats} interleaved calls after one warm-up; ms per call; "
           "speed-up = baseline time / this time (forward / fwd+bwd), same run; the reference is skipped "
           f"beyond {args.reference_max_pairs:.0e} pixel x Gaussian pairs\n")
@@ -315,7 +301,7 @@ def main(argv: list[str] | None = None) -> None:
                 f_ms, b_ms, fc_ms, bc_ms = medians[impl.name]
                 print(f"| {label} | {threads} | {impl.name} | {f_ms:.1f} | {b_ms:.1f} | {fc_ms:.1f} | "
                       f"{bc_ms:.1f} | {_speedup(medians, skipped, impl.name)} |", flush=True)
-    print(f"\nload average at end: {_load()}")
+    print(f"\nload average at end: {load_average('/')} (1/5/15 min)")
 
 
 if __name__ == "__main__":
