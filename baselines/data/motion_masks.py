@@ -1,0 +1,185 @@
+"""Motion masks estimated from optical flow and KNOWN cameras (no learned model, no weights).
+
+    masks, report = estimate_motion_masks(images, Ks, viewmats)     # list of [H, W] bool, 1 = moving
+
+Recipe (MonST3R's idea, adapted to known cameras): for every frame and each neighbour within
+`offsets`, compute DIS flow and measure how far each pixel's flow lands from where a STATIC scene
+could send it:
+
+- without depth, the distance of q + flow(q) from the epipolar line of q in the neighbour (a
+  static point must land on it), or from the infinite-homography point K_b R K_a^-1 q when the
+  cameras share a centre (pure rotation, where the epipolar geometry degenerates); the smaller
+  of the two is taken, so the test never flags what either static model explains;
+- with metric depth (`depths`, e.g. the simulator's ground truth), the distance from the point
+  the depth re-projects to (MonST3R's flow-vs-rigid-flow comparison).
+
+Each pair's error is divided by a robust scale (its median over pixels, floored at
+`min_scale_px`, since most pixels are static), pixels whose flow fails the forward-backward test
+are left out, the per-pixel MEDIAN over the frame's pairs is thresholded (a moving pixel breaks
+every pair, a flow failure on repetitive texture usually one), and the mask is cleaned with
+morphology (opening, closing, removal of small components).
+
+Known blind spot: motion ALONG the epipolar line is invisible to the depth-free test (an object
+moving parallel to the camera's translation); `report.epipolar_only` says which test ran.
+Measured on the synthetic suite (128x96, full sequences, IoU with the true masks / false-positive
+fraction of the image): balloon 0.55 / 0.0002 without depth, 0.91 / 0.001 with it; truck 0.003
+without depth (it moves along the rig's baseline) and 0.90 / 0.014 with it; skating 0.01 and
+0.45 / 0.054; static scene: empty masks either way. Give depth whenever a metric one exists.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from .optical_flow import consistent, flow_pair, pixel_grid
+
+PURE_ROTATION_BASELINE = 1e-9  # |t_rel| below this: the epipolar test is undefined
+
+
+@dataclass
+class MotionMaskOptions:
+    """Knobs of `estimate_motion_masks` (defaults tuned on the synthetic suite, see tests)."""
+
+    offsets: tuple[int, ...] = (-2, -1, 1, 2)  # neighbours (in list order) each frame is paired with
+    threshold: float = 4.0  # normalised error (multiples of the pair's median) above which a pixel moves
+    min_error_px: float = 1.0  # ... and at least this many pixels of mean raw error
+    min_scale_px: float = 0.3  # floor of the per-pair robust scale (a static pair must not amplify noise)
+    open_px: int = 1  # radius of the opening (removes isolated pixels)
+    close_px: int = 2  # radius of the closing (fills holes)
+    min_area: float = 0.001  # components smaller than this fraction of the image are dropped
+
+
+@dataclass
+class MaskReport:
+    """How each frame's mask was obtained."""
+
+    pairs: list[list[int]] = field(default_factory=list)  # neighbours used per frame
+    coverage: list[float] = field(default_factory=list)  # masked fraction per frame
+    epipolar_only: bool = True
+
+
+def relative_pose(viewmat_a: np.ndarray, viewmat_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R [3,3], t [3]) mapping camera-a coordinates to camera-b coordinates."""
+    a, b = np.asarray(viewmat_a, np.float64), np.asarray(viewmat_b, np.float64)
+    rotation = b[:3, :3] @ a[:3, :3].T
+    return rotation, b[:3, 3] - rotation @ a[:3, 3]
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def static_scene_error(flow: np.ndarray, K_a: np.ndarray, viewmat_a: np.ndarray, K_b: np.ndarray,
+                       viewmat_b: np.ndarray, depth_a: np.ndarray | None = None) -> np.ndarray:
+    """[H, W] pixels: how far q + flow(q) lies from every position a static scene allows.
+
+    With `depth_a` [H, W] (z-depth of view a's pixels): distance from the re-projected point
+    (pixels with non-positive or non-finite depth, or landing behind camera b, get 0: no evidence).
+    Without: min(distance from the epipolar line, distance from the infinite-homography point).
+    """
+    h, w = flow.shape[:2]
+    x, y = pixel_grid(h, w)
+    q = np.stack([x, y, np.ones_like(x)], -1).astype(np.float64)  # [H, W, 3]
+    target = np.stack([x + flow[..., 0], y + flow[..., 1]], -1).astype(np.float64)
+    rotation, translation = relative_pose(viewmat_a, viewmat_b)
+    K_a, K_b = np.asarray(K_a, np.float64), np.asarray(K_b, np.float64)
+    rays = q @ np.linalg.inv(K_a).T  # [H, W, 3], z = 1
+    if depth_a is not None:
+        depth = np.asarray(depth_a, np.float64)
+        ok = np.isfinite(depth) & (depth > 0)
+        points_b = (rays * np.where(ok, depth, 1.0)[..., None]) @ rotation.T + translation
+        z = points_b[..., 2]
+        ok &= z > 1e-6
+        projected = points_b @ K_b.T
+        predicted = projected[..., :2] / np.where(ok, z, 1.0)[..., None]
+        return np.where(ok, np.linalg.norm(target - predicted, axis=-1), 0.0).astype(np.float32)
+
+    infinite = rays @ rotation.T @ K_b.T
+    infinite = infinite[..., :2] / np.clip(infinite[..., 2:3], 1e-9, None)
+    homography_error = np.linalg.norm(target - infinite, axis=-1)
+    if np.linalg.norm(translation) < PURE_ROTATION_BASELINE:
+        return homography_error.astype(np.float32)
+    fundamental = np.linalg.inv(K_b).T @ _skew(translation) @ rotation @ np.linalg.inv(K_a)
+    lines = q @ fundamental.T  # [H, W, 3]: epipolar line of q in b
+    norm = np.linalg.norm(lines[..., :2], axis=-1)
+    target_h = np.concatenate([target, np.ones_like(target[..., :1])], -1)
+    epipolar = np.abs((lines * target_h).sum(-1)) / np.clip(norm, 1e-12, None)
+    epipolar = np.where(norm > 1e-12, epipolar, np.inf)
+    return np.minimum(epipolar, homography_error).astype(np.float32)
+
+
+def clean_mask(mask: np.ndarray, options: MotionMaskOptions) -> np.ndarray:
+    """Opening, closing and small-component removal of a [H, W] bool mask."""
+    out = mask.astype(np.uint8)
+    if options.open_px > 0:
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * options.open_px + 1,) * 2)
+        out = cv2.morphologyEx(out, cv2.MORPH_OPEN, kernel)
+    if options.close_px > 0:
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * options.close_px + 1,) * 2)
+        out = cv2.morphologyEx(out, cv2.MORPH_CLOSE, kernel)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(out, connectivity=8)
+    min_pixels = options.min_area * mask.size
+    keep = np.zeros(count, bool)
+    keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= min_pixels
+    return keep[labels]
+
+
+def estimate_motion_masks(images: Sequence[np.ndarray], Ks: Sequence[np.ndarray], viewmats: Sequence[np.ndarray],
+                          depths: Sequence[np.ndarray] | None = None,
+                          options: MotionMaskOptions | None = None) -> tuple[list[np.ndarray], MaskReport]:
+    """Per-frame motion masks ([H, W] bool, True = moving) of a sequence with known cameras.
+
+    Args:
+        images: frames in temporal order, [H, W, 3] RGB (float in [0, 1] or uint8), one size.
+        Ks, viewmats: per frame [3, 3] intrinsics and [4, 4] world->camera (OpenCV axes).
+        depths: optional per-frame metric z-depth [H, W] (switches to the re-projection test).
+        options: see `MotionMaskOptions`.
+    Returns:
+        (masks, report). A single frame has no pair: its mask is empty (report.pairs says so).
+    """
+    options = options or MotionMaskOptions()
+    n = len(images)
+    if not (len(Ks) == len(viewmats) == n) or (depths is not None and len(depths) != n):
+        raise ValueError(f"estimate_motion_masks: {n} images but {len(Ks)} intrinsics, {len(viewmats)} poses"
+                         + (f", {len(depths)} depth maps" if depths is not None else ""))
+    if n == 0:
+        return [], MaskReport()
+    shape = np.asarray(images[0]).shape[:2]
+    for k, image in enumerate(images):
+        if np.asarray(image).shape[:2] != shape:
+            raise ValueError(f"estimate_motion_masks: frame {k} is {np.asarray(image).shape[:2]}, frame 0 is {shape}")
+    report = MaskReport(epipolar_only=depths is None, pairs=[[] for _ in range(n)])
+    masks = []
+    for a in range(n):
+        normalised, raw = [], []
+        for offset in options.offsets:
+            b = a + offset
+            if not 0 <= b < n or b == a:
+                continue
+            fwd, bwd = flow_pair(images[a], images[b])
+            error = static_scene_error(fwd, Ks[a], viewmats[a], Ks[b], viewmats[b],
+                                       None if depths is None else depths[a])
+            reliable = consistent(fwd, bwd) & np.isfinite(error)
+            if not reliable.any():
+                continue
+            scale = max(float(np.median(error[reliable])), options.min_scale_px)
+            normalised.append(np.where(reliable, error / scale, np.nan))
+            raw.append(np.where(reliable, error, np.nan))
+            report.pairs[a].append(b)
+        if normalised:
+            # The median over pairs: a moving pixel breaks every pair, a flow failure (repetitive
+            # texture, a large jump) usually only one.
+            with warnings.catch_warnings():  # all-NaN pixels (unreliable in every pair) -> 0
+                warnings.simplefilter("ignore", RuntimeWarning)
+                score = np.nan_to_num(np.nanmedian(np.stack(normalised), axis=0), nan=0.0)
+                raw_score = np.nan_to_num(np.nanmedian(np.stack(raw), axis=0), nan=0.0)
+            mask = clean_mask((score > options.threshold) & (raw_score > options.min_error_px), options)
+        else:
+            mask = np.zeros(shape, bool)
+        masks.append(mask)
+        report.coverage.append(float(mask.mean()))
+    return masks, report

@@ -1,0 +1,151 @@
+"""DIS optical flow and motion masks from known cameras, against the simulator's ground truth."""
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from baselines.data.motion_masks import (MotionMaskOptions, estimate_motion_masks, relative_pose,
+                                         static_scene_error)
+from baselines.data.optical_flow import consistent, dis_flow, forward_backward_error, sample_bilinear
+from baselines.synthetic import get_scene, simulate
+
+
+def _load(root, n):
+    cams = json.loads((root / "gt" / "cameras.json").read_text())["frames"][:n]
+    images = [cv2.imread(str(root / "images" / f"{i:03d}.png"))[..., ::-1].copy() for i in range(n)]
+    masks = [cv2.imread(str(root / "motion_masks" / f"{i:03d}.png"), 0) > 0 for i in range(n)]
+    depths = [np.load(root / "gt" / "depth" / f"{i:03d}.npy") for i in range(n)]
+    return images, [np.array(c["K"]) for c in cams], [np.array(c["viewmat"]) for c in cams], masks, depths
+
+
+@pytest.fixture(scope="module")
+def balloon(tmp_path_factory):
+    spec = get_scene("balloon", frames=8, width=96, height=72, seed=0)
+    return simulate(spec, tmp_path_factory.mktemp("mm") / "balloon", progress=False)
+
+
+@pytest.fixture(scope="module")
+def static_room(tmp_path_factory):
+    spec = get_scene("static", frames=6, width=96, height=72, seed=0)
+    return simulate(spec, tmp_path_factory.mktemp("mm") / "static", progress=False)
+
+
+def test_dis_flow_matches_ground_truth(balloon):
+    images, *_ = _load(balloon, 4)
+    for i in range(3):
+        flow = dis_flow(images[i], images[i + 1])
+        gt = np.load(balloon / "gt" / "flow_fwd" / f"{i:03d}.npy")
+        occluded = cv2.imread(str(balloon / "gt" / "occ_fwd" / f"{i:03d}.png"), 0) > 0
+        assert flow.shape == gt.shape and flow.dtype == np.float32
+        epe = np.linalg.norm(flow - gt, axis=-1)[~occluded]
+        assert np.median(epe) < 0.5, np.median(epe)
+
+
+def test_identical_frames_give_zero_flow_and_consistency(balloon):
+    images, *_ = _load(balloon, 1)
+    flow = dis_flow(images[0], images[0])
+    assert np.abs(flow).max() < 1e-3
+    err, inside = forward_backward_error(flow, flow)
+    assert err.max() < 1e-3 and inside.all()
+    assert consistent(flow, flow).all()
+
+
+def test_forward_backward_detects_inconsistency():
+    h, w = 20, 30
+    fwd = np.zeros((h, w, 2), np.float32)
+    fwd[..., 0] = 3.0
+    bwd = -fwd.copy()
+    bwd[5:10, 10:20] = 5.0  # wrong backward flow in a block
+    ok = consistent(fwd, bwd)
+    assert ok[0, 0] and not ok[5, 8]
+    # pixels pushed out of the image are never "consistent"
+    assert not ok[:, -1].any()
+
+
+def test_sample_bilinear_pixel_centres():
+    field = np.arange(12, dtype=np.float32).reshape(3, 4, 1)
+    x = np.array([[0.5, 1.0, 3.5]], np.float32)
+    y = np.array([[0.5, 0.5, 2.5]], np.float32)
+    values, inside = sample_bilinear(field, x, y)
+    np.testing.assert_allclose(values[0, :, 0], [0.0, 0.5, 11.0], atol=1e-5)
+    assert inside.all()
+    _, outside = sample_bilinear(field, np.array([[-1.0]], np.float32), np.array([[1.0]], np.float32))
+    assert not outside.any()
+
+
+def test_bad_images_are_rejected():
+    with pytest.raises(ValueError, match="sizes differ"):
+        dis_flow(np.zeros((8, 8, 3)), np.zeros((9, 8, 3)))
+    with pytest.raises(ValueError, match="NaN"):
+        dis_flow(np.full((8, 8, 3), np.nan), np.zeros((8, 8, 3)))
+    with pytest.raises(ValueError, match="preset"):
+        dis_flow(np.zeros((8, 8, 3)), np.zeros((8, 8, 3)), preset="slow")
+
+
+def test_static_error_is_zero_for_the_true_static_flow():
+    K = np.array([[50.0, 0, 20], [0, 50.0, 15], [0, 0, 1]])
+    va = np.eye(4)
+    vb = np.eye(4)
+    vb[:3, 3] = [-0.2, 0.05, 0.0]  # camera b moved right/up
+    depth = np.full((30, 40), 4.0)
+    y, x = np.mgrid[0:30, 0:40] + 0.5
+    # true static flow of a fronto-parallel plane at z=4 under pure translation
+    flow = np.stack([np.full_like(x, 50.0 * -0.2 / 4.0), np.full_like(y, 50.0 * 0.05 / 4.0)], -1)
+    assert static_scene_error(flow, K, va, K, vb).max() < 1e-6
+    assert static_scene_error(flow, K, va, K, vb, depth).max() < 1e-6
+    # a flow perpendicular to the epipolar lines (here: vertical extra motion) is flagged
+    moved = flow + np.array([0.0, 2.0])
+    assert static_scene_error(moved, K, va, K, vb).min() > 1.0
+
+
+def test_pure_rotation_uses_the_homography():
+    K = np.array([[40.0, 0, 16], [0, 40.0, 12], [0, 0, 1]])
+    angle = np.deg2rad(2.0)
+    R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    vb = np.eye(4)
+    vb[:3, :3] = R
+    rotation, translation = relative_pose(np.eye(4), vb)
+    assert np.allclose(translation, 0) and np.allclose(rotation, R)
+    y, x = np.mgrid[0:24, 0:32] + 0.5
+    q = np.stack([x, y, np.ones_like(x)], -1)
+    p = q @ (K @ R @ np.linalg.inv(K)).T
+    flow = p[..., :2] / p[..., 2:] - q[..., :2]
+    err = static_scene_error(flow.astype(np.float32), K, np.eye(4), K, vb)
+    assert np.isfinite(err).all() and err.max() < 1e-3
+
+
+def test_masks_find_the_balloon(balloon):
+    images, Ks, viewmats, truth, depths = _load(balloon, 8)
+    masks, report = estimate_motion_masks(images, Ks, viewmats)
+    assert report.epipolar_only and all(len(p) >= 2 for p in report.pairs)
+    ious = [(m & t).sum() / max((m | t).sum(), 1) for m, t in zip(masks, truth) if t.sum() > 20]
+    assert np.mean(ious) > 0.4, ious
+    false_positive = np.mean([(m & ~t).mean() for m, t in zip(masks, truth)])
+    assert false_positive < 0.01
+    depth_masks, depth_report = estimate_motion_masks(images, Ks, viewmats, depths)
+    assert not depth_report.epipolar_only
+    depth_ious = [(m & t).sum() / max((m | t).sum(), 1) for m, t in zip(depth_masks, truth) if t.sum() > 20]
+    assert np.mean(depth_ious) > 0.6, depth_ious
+
+
+def test_static_scene_gives_empty_masks(static_room):
+    images, Ks, viewmats, _, _ = _load(static_room, 6)
+    masks, report = estimate_motion_masks(images, Ks, viewmats)
+    assert max(report.coverage) < 0.005
+
+
+def test_degenerate_inputs():
+    image = np.zeros((16, 16, 3), np.uint8)
+    masks, report = estimate_motion_masks([image], [np.eye(3)], [np.eye(4)])
+    assert len(masks) == 1 and not masks[0].any() and report.pairs == [[]]
+    assert estimate_motion_masks([], [], [])[0] == []
+    with pytest.raises(ValueError, match="intrinsics"):
+        estimate_motion_masks([image, image], [np.eye(3)], [np.eye(4), np.eye(4)])
+    with pytest.raises(ValueError, match="frame 1"):
+        estimate_motion_masks([image, np.zeros((8, 8, 3), np.uint8)], [np.eye(3)] * 2, [np.eye(4)] * 2)
+    opts = MotionMaskOptions(offsets=(1,))
+    masks, report = estimate_motion_masks([image, image], [np.eye(3)] * 2, [np.eye(4)] * 2, options=opts)
+    assert not any(m.any() for m in masks)
