@@ -36,10 +36,13 @@ CONFIG_JSON = "config.json"
 _CLI_ONLY_FIELDS = {"configs"}
 
 
-def write_cfg_args(path: str | Path, train_args: TrainArgs) -> tuple[Path, Path]:
+def write_cfg_args(path: str | Path, train_args: TrainArgs,
+                   facts: dict[str, Any] | None = None) -> tuple[Path, Path]:
     """Write ``<path>/cfg_args`` and ``<path>/config.json`` atomically; returns both paths.
 
-    ``path`` is the model directory (created if missing).
+    ``path`` is the model directory (created if missing). ``facts``: extra top-level entries of
+    config.json about the run (e.g. ``_components``, the plugins' resolved components); their
+    keys start with "_" so that the file still loads as a config layer.
     """
     model_dir = Path(path)
     model_dir.mkdir(parents=True, exist_ok=True)
@@ -55,6 +58,10 @@ def write_cfg_args(path: str | Path, train_args: TrainArgs) -> tuple[Path, Path]
         "_configs": list(train_args.run.configs),
         "_sources": dict(train_args.sources),
     }
+    for key, value in (facts or {}).items():
+        if not key.startswith("_"):
+            raise ValueError(f"write_cfg_args: fact {key!r} must start with '_' (config.json is also a config file)")
+        doc[key] = value
     for name, values in groups.items():
         if name == "RunParams":
             values = {k: v for k, v in values.items() if k not in _CLI_ONLY_FIELDS}

@@ -1,3 +1,11 @@
-"""ReFlow as a plugin of the 4DGS host: canonical space construction, static/dynamic separated
-deformation and self-correction flow matching. Only the ReFlow parts live here; everything it
-builds on is in `baselines`."""
+"""ReFlow (CVPR 2026) as a plugin of the 4DGS host: ``python train.py --plugin reflow``.
+
+Modules: params (ReFlowParams), pairs (frame pairs), flow (full/camera flow maps), warp (warping,
+photometric loss), matching (flow matching losses), separation (static/dynamic deformation),
+labels / seeding (motion masks, labels, dynamic points), evaluate (flow EPE), visualize (flow
+pictures), plugin (the hooks). The host finds the plugin through the entry point
+``fourdgs.plugins: reflow = reflow_plugin.plugin:ReFlowPlugin`` (setup.cfg).
+"""
+from .params import ReFlowParams
+
+__all__ = ["ReFlowParams"]

@@ -89,7 +89,7 @@ def build_trainer(argv: list[str]) -> Trainer:
     model_path = Path(args.model.model_path or REPO_ROOT / "output" / name)
     args.model.model_path = str(model_path)
     model_path.mkdir(parents=True, exist_ok=True)
-    write_cfg_args(model_path, args)
+    write_cfg_args(model_path, args, {"_components": {name: sorted(active) for name, active in components.items()}})
 
     plugins: list[Plugin] = [
         cls({g: args.extra[g] for g in cls.param_groups}, components[cls.name]) for cls in plugin_classes
@@ -146,19 +146,26 @@ def run_cli(entry: Callable[[], int]) -> None:
         sys.exit(2)
 
 
-def render_from_argv(argv: list[str]) -> dict[str, Path]:
-    """The whole of render.py: load a trained model directory and write its renders.
+@dataclass
+class LoadedRun:
+    """A trained model directory loaded for rendering or evaluation."""
 
-    Writes <model>/{train,test}/ours_<iter>/{renders,gt,depth}/, updates results.json with the
-    test metrics, and renders <model>/video/ours_<iter>/video_rgb.mp4. Plugins and component
-    toggles are restored from the model directory's saved configuration.
+    trainer: Trainer
+    args: object
+    iteration: int
+
+
+def load_run(argv: list[str]) -> LoadedRun:
+    """Load `-m MODEL [--iteration N]` (render.py's flags) with its saved configuration and plugins.
+
+    The scene is read with the saved dataset flags; plugins and component toggles are restored
+    from the model directory. Raises FileNotFoundError when no saved iteration exists.
     """
     from arguments import parse_render_args, peek_plugins
     from baselines.data import load_scene
 
     from .checkpoint import find_latest_iteration, point_cloud_dir
 
-    logging.basicConfig(level=logging.INFO, format="[%(name)s] %(message)s")
     plugin_classes = [load_plugin_class(name) for name in peek_plugins(argv, from_model_dir=True)]
     extra_groups: dict[str, type] = {}
     for cls in plugin_classes:
@@ -182,6 +189,20 @@ def render_from_argv(argv: list[str]) -> dict[str, Path]:
     plugins = [cls({g: args.extra[g] for g in cls.param_groups}, components[cls.name]) for cls in plugin_classes]
     trainer = Trainer(args, scene, plugins, model_path)
     trainer.load_model_from(pc_dir)
+    return LoadedRun(trainer, args, iteration)
+
+
+def render_from_argv(argv: list[str]) -> dict[str, Path]:
+    """The whole of render.py: load a trained model directory and write its renders.
+
+    Writes <model>/{train,test}/ours_<iter>/{renders,gt,depth}/, updates results.json with the
+    test metrics, and renders <model>/video/ours_<iter>/video_rgb.mp4. Plugins and component
+    toggles are restored from the model directory's saved configuration.
+    """
+    logging.basicConfig(level=logging.INFO, format="[%(name)s] %(message)s")
+    loaded = load_run(argv)
+    trainer, args, iteration = loaded.trainer, loaded.args, loaded.iteration
+    model_path, scene = trainer.ctx.model_path, trainer.ctx.scene
     model, background, backend = trainer.ctx.model, trainer.ctx.background, args.pipe.backend
     method = f"ours_{iteration}"
     written: dict[str, Path] = {}

@@ -80,7 +80,8 @@ class DeformationModule(Protocol):
 
     ``forward(state, times [N,1], buffers) -> GaussianState`` maps canonical pre-activation
     Gaussians to time ``times``; ``buffers`` holds the model's registered per-Gaussian buffers
-    and parameters (rows aligned with ``state``). Optimizer groups "deformation" and "grid" are
+    and parameters and its ``deformation_table`` ([N] bool), rows aligned with ``state``
+    (``GaussianModel.deformation_inputs``). 4DGS's network deforms every row. Optimizer groups "deformation" and "grid" are
     built from ``get_mlp_parameters()`` and ``get_grid_parameters()``.
     """
 

@@ -80,6 +80,7 @@ def densification_step(
     height: int,
     max_gaussians: int = DENSIFY_MAX_GAUSSIANS,
     prune_min_gaussians: int = PRUNE_MIN_GAUSSIANS,
+    protect: Tensor | None = None,
 ) -> DensificationRecord:
     """Run 4DGS's densification block for one iteration (call after backward, before the step).
 
@@ -90,6 +91,9 @@ def densification_step(
             summed over the batch's views.
         width, height: image size (converts the gradient to 4DGS's NDC units).
         max_gaussians, prune_min_gaussians: 4DGS's 360 000 cap and 200 000 floor.
+        protect: [N] bool, Gaussians never pruned this iteration (ours: the plugins'
+            `protected_gaussians`); clones and split children of a protected Gaussian are
+            protected too.
     """
     record = DensificationRecord(iteration=iteration, num_gaussians=model.num_gaussians)
     if iteration >= opt.densify_until_iter:
@@ -100,6 +104,8 @@ def densification_step(
             f"densification_step: visible and radii must be [{count}], "
             f"got {list(visible.shape)} and {list(radii.shape)}"
         )
+    if protect is not None and protect.shape != (count,):
+        raise ValueError(f"densification_step: protect must be [{count}] bool, got {list(protect.shape)}")
     model.update_max_radii(radii, visible)
     model.add_densification_stats(means2d_grad, visible, width, height)
     record.stats_updated = True
@@ -112,14 +118,19 @@ def densification_step(
         and iteration % opt.densification_interval == 0
         and model.num_gaussians < max_gaussians
     ):
+        if protect is not None:
+            # Follow the protected rows through clone/split (both keep their parent's buffers).
+            model.register_gaussian_buffer("_protect", protect.float().unsqueeze(1))
         record.cloned, record.split = model.densify(grad_threshold, cameras_extent)
         record.densify_ran = True
+        if protect is not None:
+            protect = model.pop_gaussian_buffer("_protect").squeeze(1) > 0.5
     if (
         iteration > opt.pruning_from_iter
         and iteration % opt.pruning_interval == 0
         and model.num_gaussians > prune_min_gaussians
     ):
-        record.pruned = model.prune(opacity_threshold, cameras_extent, size_threshold)
+        record.pruned = model.prune(opacity_threshold, cameras_extent, size_threshold, protect=protect)
         record.prune_ran = True
     if iteration % opt.opacity_reset_interval == 0:
         model.reset_opacity()

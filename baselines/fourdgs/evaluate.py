@@ -9,6 +9,12 @@
 results.json = {"ours_<iter>": {"PSNR", "SSIM", "LPIPS-vgg", "LPIPS-alex"}} and per_view.json the
 same keys mapping image name -> value. LPIPS is null when the lpips package or its weights are
 unavailable, and results.json then says why under "LPIPS_unavailable"; it is never faked.
+
+Dynamic-region metrics (ours): when the dataset has motion masks, "PSNR-dynamic" / "SSIM-dynamic"
+are computed inside each test view's mask and "PSNR-static" / "SSIM-static" outside it (SSIM: the
+3DGS SSIM map averaged over those pixels). Full-image PSNR is dominated by the static background;
+these say whether the moving object is there at all. A view whose mask is empty (or full) has
+null for the region it lacks; the means are over the views that have the region.
 """
 from __future__ import annotations
 
@@ -23,7 +29,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from baselines.metrics import lpips_or_reason, psnr, ssim
+from baselines.metrics import lpips_or_reason, psnr, ssim, ssim_map
 
 from .renderer import render
 
@@ -96,17 +102,43 @@ def evaluate_cameras(
             value, reason = lpips_or_reason(image, gt, net=net)
             row[f"LPIPS-{net}"] = value
             result.lpips_unavailable = reason or result.lpips_unavailable
+        if cam.mask is not None:
+            row.update(region_metrics(image, gt, cam.mask))
         result.per_view[name] = row
         for key, value in row.items():
             if value is not None:
-                sums[key].append(value)
+                sums.setdefault(key, []).append(value)
         if out_dir is not None:
             write_png(out_dir / "renders" / name, to_uint8(image))
             write_png(out_dir / "gt" / name, to_uint8(gt))
             write_png(out_dir / "depth" / name, depth_to_color(view.depth, view.alpha))
     result.mean = {k: (sum(v) / len(v) if v else None) for k, v in sums.items()}
+    for row in result.per_view.values():  # every view lists every metric (null where it has none)
+        for key in result.mean:
+            row.setdefault(key, None)
     result.render_ms = 1000.0 * elapsed / max(1, len(cameras))
     return result
+
+
+REGIONS = ("dynamic", "static")
+
+
+def region_metrics(image: Tensor, gt: Tensor, mask: Tensor) -> dict[str, float | None]:
+    """PSNR and SSIM inside (dynamic) and outside (static) a [H, W] motion mask (1 = dynamic).
+
+    image, gt: [H, W, 3] in [0, 1]. SSIM is the 3DGS SSIM map averaged over the region's pixels.
+    A region with no pixel gets None.
+    """
+    dynamic = mask.to(image.device) > 0.5
+    ssim_values = ssim_map(image, gt).mean(dim=-1)  # [H, W]
+    out: dict[str, float | None] = {}
+    for region, selected in zip(REGIONS, (dynamic, ~dynamic)):
+        if not bool(selected.any()):
+            out[f"PSNR-{region}"] = out[f"SSIM-{region}"] = None
+            continue
+        out[f"PSNR-{region}"] = float(psnr(image, gt, mask=selected))
+        out[f"SSIM-{region}"] = float(ssim_values[selected].mean())
+    return out
 
 
 def write_metrics(model_path: Path, method: str, result: EvalResult) -> None:

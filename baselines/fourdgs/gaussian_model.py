@@ -46,6 +46,8 @@ ROW_GROUPS: dict[str, str] = {
 }
 GROUP_ORDER: tuple[str, ...] = ("xyz", "deformation", "grid", "f_dc", "f_rest", "opacity", "scaling", "rotation")
 STAGES: tuple[str, ...] = ("coarse", "fine")
+# Names the deformation module receives beside the registered buffers (see deformation_inputs).
+RESERVED_INPUTS: tuple[str, ...] = ("deformation_table",)
 CAPTURE_LENGTH_4DGS = 14
 
 
@@ -379,7 +381,7 @@ class GaussianModel:
     def _check_new_name(self, name: str, tensor: Tensor) -> None:
         if not isinstance(name, str) or not name.isidentifier():
             raise ValueError(f"per-Gaussian attribute name must be an identifier, got {name!r}")
-        if name in GROUP_ORDER or name in self._extra_buffers or name in self._extra_params:
+        if name in GROUP_ORDER or name in RESERVED_INPUTS or name in self._extra_buffers or name in self._extra_params:
             raise ValueError(f"per-Gaussian attribute {name!r} already exists")
         if not isinstance(tensor, Tensor) or tensor.dim() == 0 or tensor.shape[0] != self.num_gaussians:
             shape = list(tensor.shape) if isinstance(tensor, Tensor) else type(tensor).__name__
@@ -400,6 +402,12 @@ class GaussianModel:
         if tensor.shape != old.shape:
             raise ValueError(f"buffer {name!r}: expected shape {list(old.shape)}, got {list(tensor.shape)}")
         self._extra_buffers[name] = tensor.detach().to(old.device, old.dtype)
+
+    def pop_gaussian_buffer(self, name: str) -> Tensor:
+        """Unregister a buffer and return its (current, densification-updated) values."""
+        if name not in self._extra_buffers:
+            raise ValueError(f"no registered per-Gaussian buffer {name!r} (have {list(self._extra_buffers)})")
+        return self._extra_buffers.pop(name)
 
     def register_gaussian_parameter(self, name: str, tensor: Tensor, lr: float) -> nn.Parameter:
         """A trainable per-Gaussian tensor [N, ...] with its own Adam group ``name`` at rate ``lr``."""
@@ -447,6 +455,13 @@ class GaussianModel:
             return time.reshape(count, 1)
         raise ValueError(f"deform: time must be a scalar, [N] or [N, 1] with N={count}, got {list(time.shape)}")
 
+    def deformation_inputs(self) -> Mapping[str, Tensor]:
+        """What the deformation module receives besides the state and times: the registered
+        per-Gaussian buffers and parameters, plus ``deformation_table`` ([N] bool, 4DGS's
+        "this Gaussian is deformed" flag; a module may skip the rows that are False)."""
+        return MappingProxyType({**self._extra_buffers, **self._extra_params,
+                                 "deformation_table": self._deformation_table})
+
     def deform(self, time: float | Tensor, stage: str) -> GaussianState:
         """Gaussians at ``time`` (scalar or per-Gaussian): canonical in the coarse stage."""
         if stage not in STAGES:
@@ -454,7 +469,19 @@ class GaussianModel:
         state = self.canonical_state()
         if stage == "coarse":
             return state
-        return self._deformation(state, self._times(time), self.gaussian_buffers)
+        return self._deformation(state, self._times(time), self.deformation_inputs())
+
+    @property
+    def deformation_table(self) -> Tensor:
+        """[N] bool, True where the Gaussian is deformed (4DGS's ``_deformation_table``)."""
+        return self._deformation_table
+
+    def set_deformation_table(self, table: Tensor) -> None:
+        """Replace the [N] bool deformation table (kept in step by clone/split/prune, saved as
+        ``deformation_table.pth``)."""
+        if table.shape != (self.num_gaussians,):
+            raise ValueError(f"set_deformation_table: expected [{self.num_gaussians}], got {list(table.shape)}")
+        self._deformation_table = table.detach().to(self.device, torch.bool).clone()
 
     def compute_regulation(
         self, time_smoothness_weight: float, l1_time_planes_weight: float, plane_tv_weight: float
@@ -562,12 +589,18 @@ class GaussianModel:
         return cloned, split
 
     @torch.no_grad()
-    def prune(self, min_opacity: float, extent: float, max_screen_size: float | None) -> int:
-        """4DGS's ``prune``: transparent Gaussians, and (with ``max_screen_size``) too large ones."""
+    def prune(self, min_opacity: float, extent: float, max_screen_size: float | None,
+              protect: Tensor | None = None) -> int:
+        """4DGS's ``prune``: transparent Gaussians, and (with ``max_screen_size``) too large ones.
+
+        ``protect`` [N] bool (ours): Gaussians kept whatever the criteria say.
+        """
         mask = (self.get_opacity < min_opacity).squeeze(-1)
         if max_screen_size:
             mask |= self.max_radii2D > max_screen_size
             mask |= self.get_scaling.max(dim=1).values > 0.1 * extent
+        if protect is not None:
+            mask &= ~protect.to(mask.device, torch.bool)
         self.prune_points(mask)
         return int(mask.sum())
 
@@ -576,6 +609,21 @@ class GaussianModel:
         """Clamp opacities to at most 0.01 and restart their Adam moments."""
         opacities = inverse_sigmoid(torch.clamp(self.get_opacity.detach(), max=0.01))
         self._install_row_param("opacity", opacities, None)
+
+    @torch.no_grad()
+    def zero_row_gradients(self, rows: Tensor) -> None:
+        """Zero every per-Gaussian gradient of the rows where ``rows`` [N] bool is True.
+
+        Per-row freezing for one step: call after backward, before the optimizer step (Adam
+        still applies the rows' existing momentum, so rows frozen from the start never move).
+        """
+        if rows.shape != (self.num_gaussians,):
+            raise ValueError(f"zero_row_gradients: rows must be [{self.num_gaussians}] bool, got {list(rows.shape)}")
+        rows = rows.to(self.device, torch.bool)
+        for name in self._row_param_names():
+            grad = self._get_row_param(name).grad
+            if grad is not None:
+                grad[rows] = 0
 
     # ----------------------------------------------------------------------------------------
     @torch.no_grad()

@@ -10,9 +10,10 @@ Order of hook calls in one training run (see trainer.py):
             select_batch
             (host: deform + project every view of the batch)
             extra_features(view k) for each view   (host: composite each view)
-            (host: baseline losses) extra_losses
+            loss_weights(view k) for each view  (host: baseline losses)  extra_losses
             pre_backward  (backward)  post_backward
-            (host: densification) [post_densify]  (host: optimizer step)  on_iteration_end
+            protected_gaussians  (host: densification) [post_densify]  (host: optimizer step)
+            on_iteration_end
             [on_save when a point cloud is written]
         on_stage_end
 """
@@ -137,6 +138,24 @@ class HookRunner:
                     raise PluginError(f"hook {hook!r}: two plugins return the key {name!r}")
                 merged[name] = tensor
         return merged
+
+    def combined_mask(self, hook: str, ctx: TrainContext, *args: Any) -> Tensor | None:
+        """Bool-mask hooks: OR of the plugins' masks (None when no plugin returns one)."""
+        result: Tensor | None = None
+        for plugin in self.plugins:
+            value = getattr(plugin, hook)(ctx, *args)
+            if value is not None:
+                result = value.bool() if result is None else result | value.bool()
+        return result
+
+    def product(self, hook: str, ctx: TrainContext, *args: Any) -> Tensor | None:
+        """Weight hooks: product of the plugins' tensors (None when no plugin returns one)."""
+        result: Tensor | None = None
+        for plugin in self.plugins:
+            value = getattr(plugin, hook)(ctx, *args)
+            if value is not None:
+                result = value if result is None else result * value
+        return result
 
     def state_dict(self) -> dict[str, Any]:
         return {plugin.name: plugin.state_dict() for plugin in self.plugins}

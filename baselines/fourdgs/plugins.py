@@ -92,6 +92,15 @@ class Plugin:
         """
         return None
 
+    def loss_weights(self, ctx: TrainContext, view_index: int) -> Tensor | None:
+        """Per-pixel weights [H, W, 1] of view `view_index` in the baseline photometric loss, or None.
+
+        Called after compositing. The host multiplies the weights of all plugins; L1 and D-SSIM
+        become weighted means (an all-ones map gives the unweighted loss). E.g. leave out
+        pixels of moving objects while a model of the static scene is fitted.
+        """
+        return None
+
     def extra_losses(self, ctx: TrainContext) -> dict[str, Tensor] | None:
         """Loss terms to add to ctx.losses (already weighted); names are prefixed with the plugin's."""
         return None
@@ -101,6 +110,15 @@ class Plugin:
 
     def post_backward(self, ctx: TrainContext) -> None:
         """Gradients exist; the optimizer has not stepped and densification has not run."""
+
+    def protected_gaussians(self, ctx: TrainContext) -> Tensor | None:
+        """[N] bool: Gaussians densification must not prune this iteration (None: protect none).
+
+        Called before densification; the host ORs the masks of all plugins. Protected Gaussians
+        are still cloned, split and opacity-reset; only removal is skipped. E.g. keep Gaussians
+        whose motion is not learned yet from being pruned as transparent.
+        """
+        return None
 
     def post_densify(self, ctx: TrainContext) -> None:
         """Densification ran this iteration (ctx.densify_record says what it did)."""

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from baselines.data import SceneInfo, initial_point_cloud
-from baselines.metrics import psnr, ssim
+from baselines.metrics import psnr, ssim, ssim_map
 
 from .checkpoint import (
     find_latest_iteration,
@@ -204,18 +204,47 @@ class Trainer:
         self.run_log.iteration(ctx, every=self.run.log_every)
 
     def baseline_losses(self) -> dict[str, Tensor]:
-        """4DGS's loss: L1 over the batch, optional D-SSIM, HexPlane regularisers (fine stage)."""
+        """4DGS's loss: L1 over the batch, optional D-SSIM, HexPlane regularisers (fine stage).
+
+        Plugins may weight pixels (`loss_weights` hook): L1 and D-SSIM then become weighted means
+        over the batch's pixels (equal to 4DGS's means when no plugin returns weights).
+        """
         ctx = self.ctx
         renders = torch.stack([v.image for v in ctx.views])
         gts = torch.stack([v.camera.image for v in ctx.views])
-        losses = {"l1": (renders - gts).abs().mean()}
+        weights = self._pixel_weights(renders)
+        if weights is None:
+            losses = {"l1": (renders - gts).abs().mean()}
+        else:
+            total = (weights.sum() * renders.shape[-1]).clamp_min(1e-12)
+            losses = {"l1": (weights * (renders - gts).abs()).sum() / total}
         if self.opt.lambda_dssim != 0:
-            losses["dssim"] = self.opt.lambda_dssim * (1.0 - ssim(renders, gts))
+            if weights is None:
+                losses["dssim"] = self.opt.lambda_dssim * (1.0 - ssim(renders, gts))
+            else:
+                losses["dssim"] = self.opt.lambda_dssim * (1.0 - (weights * ssim_map(renders, gts)).sum() / total)
         if ctx.stage == "fine" and self.hidden.time_smoothness_weight != 0:
             losses["regulation"] = ctx.model.compute_regulation(
                 self.hidden.time_smoothness_weight, self.hidden.l1_time_planes, self.hidden.plane_tv_weight
             )
         return losses
+
+    def _pixel_weights(self, renders: Tensor) -> Tensor | None:
+        """[B, H, W, 1] product of the plugins' loss weights per view, or None when none gave any."""
+        per_view = [self.hooks.product("loss_weights", self.ctx, k) for k in range(len(self.ctx.views))]
+        if all(w is None for w in per_view):
+            return None
+        shape = renders.shape[1:3]
+        maps = []
+        for k, w in enumerate(per_view):
+            if w is None:
+                maps.append(renders.new_ones(*shape, 1))
+                continue
+            w = w.reshape(*shape, 1) if w.numel() == shape[0] * shape[1] else w
+            if tuple(w.shape) != (*shape, 1):
+                raise ValueError(f"loss_weights of view {k}: expected [H, W, 1] = {[*shape, 1]}, got {list(w.shape)}")
+            maps.append(w.to(renders.dtype).detach())
+        return torch.stack(maps)
 
     def _densify(self) -> None:
         ctx = self.ctx
@@ -226,10 +255,12 @@ class Trainer:
         visible = torch.stack([v.projection.visible for v in views]).any(dim=0)
         radii = torch.stack([v.projection.radii.max(dim=1).values for v in views]).max(dim=0).values
         cam = views[0].camera
+        protect = self.hooks.combined_mask("protected_gaussians", ctx)
         ctx.densify_record = densification_step(
             ctx.model, self.opt, ctx.iteration, ctx.stage, self.cameras_extent, visible, radii.float(),
             torch.stack(grads).sum(dim=0), cam.width, cam.height,
             max_gaussians=self.opt.densify_max_gaussians, prune_min_gaussians=self.opt.prune_min_gaussians,
+            protect=protect,
         )
         record = ctx.densify_record
         if record.densify_ran or record.prune_ran or record.opacity_reset:

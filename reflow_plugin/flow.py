@@ -1,0 +1,175 @@
+"""Full flow and camera flow of a Gaussian model between two views (DESIGN.md section 5).
+
+Full flow, rendered in ONE rasterization pass as extra feature channels of view a:
+
+    each Gaussian i maps a pixel q of view a to   A_i (q - m_a,i) + m_b,i,
+        A_i = sqrt(S_b,i) sqrt(S_a,i)^-1          (symmetric 2x2 square roots; GaussianFlow's map)
+    blended:  F_a->b(q) = (M(q) q + c(q)) / alpha(q) - q,
+        M(q) = sum_i w_i(q) A_i  (4 channels),   c(q) = sum_i w_i(q) (m_b,i - A_i m_a,i)  (2 channels)
+
+m and S are the projected means and 2D covariances (eps2d blur included: those are the
+Gaussians the pixels were blended with). sqrt(S_a)^-1 = sqrt(S_a^-1) is built from the conic
+that the projection already computes. A 7th channel v_i = 1 for Gaussians that are in front of
+camera b (0 otherwise, with A_i = I and c_i = 0 so their values stay finite): a pixel is valid
+when alpha(q) >= min_alpha and sum w v / alpha >= 0.99. Invalid pixels get flow 0 and are masked;
+no NaN or inf reaches values or gradients.
+
+Camera flow, from view a's expected depth D_a and the two cameras (paper appendix A.3):
+
+    F^cam_a->b(q) = proj(K_b T_b T_a^-1 (D_a(q) K_a^-1 [q, 1])) - q
+
+Pixels: (x, y) = (column + 0.5, row + 0.5). `full_flow_dense` is the obviously-correct twin used
+as the test oracle: per-pixel, per-Gaussian blending weights from the reference rasterizer.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from baselines.render import Projection
+
+NEAR = 0.01  # the rasterizer's near plane
+VALID_COVERAGE = 0.99  # share of a pixel's weight that must come from Gaussians valid in view b
+FLOW_CHANNELS = 7  # A (4) + c (2) + validity (1)
+
+
+def pixel_grid(height: int, width: int, like: Tensor) -> Tensor:
+    """[H, W, 2] pixel-centre coordinates (x, y) on `like`'s device and dtype."""
+    ys = torch.arange(height, device=like.device, dtype=like.dtype) + 0.5
+    xs = torch.arange(width, device=like.device, dtype=like.dtype) + 0.5
+    grid_y, grid_x = torch.meshgrid(ys, xs, indexing="ij")
+    return torch.stack((grid_x, grid_y), dim=-1)
+
+
+def sqrtm_spd2(a: Tensor, b: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Symmetric square root of [[a, b], [b, c]] (SPD), elementwise: returns its (a, b, c).
+
+    sqrt(M) = (M + s I) / t with s = sqrt(det M), t = sqrt(tr M + 2 s). det is clamped at a tiny
+    positive value so near-singular inputs give finite values and gradients.
+    """
+    det = (a * c - b * b).clamp_min(1e-20)
+    s = det.sqrt()
+    t = (a + c + 2.0 * s).clamp_min(1e-20).sqrt()
+    return (a + s) / t, b / t, (c + s) / t
+
+
+def valid_in_view(projection: Projection, near: float = NEAR) -> Tensor:
+    """[N] bool: in front of the camera's near plane with finite screen values (flow target exists)."""
+    finite = torch.isfinite(projection.means2d).all(dim=1) & torch.isfinite(projection.cov2d).flatten(1).all(dim=1)
+    return (projection.depths >= near) & finite
+
+
+def flow_features(proj_a: Projection, proj_b: Projection, near: float = NEAR) -> Tensor:
+    """Per-Gaussian channels [N, 7] = (A_00, A_01, A_10, A_11, c_x, c_y, v) for view a's pass.
+
+    Args:
+        proj_a, proj_b: the same N Gaussians projected into view a (at t_a) and view b (at t_b).
+    """
+    # sqrt(S_b)
+    sb_a, sb_b, sb_c = sqrtm_spd2(proj_b.cov2d[:, 0, 0], proj_b.cov2d[:, 0, 1], proj_b.cov2d[:, 1, 1])
+    # sqrt(S_a)^-1 = sqrt(S_a^-1); the conic is (a, b, c) of S_a^-1
+    ia_a, ia_b, ia_c = sqrtm_spd2(proj_a.conics[:, 0], proj_a.conics[:, 1], proj_a.conics[:, 2])
+    a00 = sb_a * ia_a + sb_b * ia_b
+    a01 = sb_a * ia_b + sb_b * ia_c
+    a10 = sb_b * ia_a + sb_c * ia_b
+    a11 = sb_b * ia_b + sb_c * ia_c
+    ma, mb = proj_a.means2d, proj_b.means2d
+    cx = mb[:, 0] - (a00 * ma[:, 0] + a01 * ma[:, 1])
+    cy = mb[:, 1] - (a10 * ma[:, 0] + a11 * ma[:, 1])
+    valid = valid_in_view(proj_b, near) & valid_in_view(proj_a, near)
+    one, zero = torch.ones_like(a00), torch.zeros_like(a00)
+    a00, a11 = torch.where(valid, a00, one), torch.where(valid, a11, one)
+    a01, a10 = torch.where(valid, a01, zero), torch.where(valid, a10, zero)
+    cx, cy = torch.where(valid, cx, zero), torch.where(valid, cy, zero)
+    return torch.stack((a00, a01, a10, a11, cx, cy, valid.to(a00.dtype)), dim=1)
+
+
+def full_flow(maps: Tensor, alpha: Tensor, min_alpha: float = 0.5) -> tuple[Tensor, Tensor]:
+    """Blended full flow of view a from its composited flow channels.
+
+    Args:
+        maps: [H, W, 7] composited `flow_features` (no background term).
+        alpha: [H, W, 1] view a's accumulated opacity.
+    Returns:
+        (flow [H, W, 2] in pixels, 0 where invalid; valid [H, W] bool).
+    """
+    h, w = maps.shape[:2]
+    q = pixel_grid(h, w, maps)
+    covered = alpha[..., 0] >= max(min_alpha, 1e-6)
+    alpha_safe = torch.where(covered, alpha[..., 0], torch.ones_like(alpha[..., 0]))
+    mx = maps[..., 0] * q[..., 0] + maps[..., 1] * q[..., 1] + maps[..., 4]
+    my = maps[..., 2] * q[..., 0] + maps[..., 3] * q[..., 1] + maps[..., 5]
+    flow = torch.stack((mx / alpha_safe, my / alpha_safe), dim=-1) - q
+    valid = covered & (maps[..., 6] / alpha_safe >= VALID_COVERAGE) & torch.isfinite(flow).all(dim=-1)
+    return torch.where(valid.unsqueeze(-1), flow, torch.zeros_like(flow)), valid
+
+
+def relative_pose(viewmat_a: Tensor, viewmat_b: Tensor) -> tuple[Tensor, Tensor]:
+    """(R [3,3], t [3]) mapping camera-a coordinates to camera-b coordinates."""
+    rotation = viewmat_b[:3, :3] @ viewmat_a[:3, :3].T
+    return rotation, viewmat_b[:3, 3] - rotation @ viewmat_a[:3, 3]
+
+
+def camera_flow(depth: Tensor, alpha: Tensor, K_a: Tensor, viewmat_a: Tensor, K_b: Tensor, viewmat_b: Tensor,
+                min_alpha: float = 0.5, near: float = NEAR) -> tuple[Tensor, Tensor]:
+    """Flow of view a's pixels if the scene were static: back-project with D_a, project into b.
+
+    Args:
+        depth, alpha: [H, W, 1] view a's expected depth and opacity.
+        K_a, K_b: [3, 3]; viewmat_a, viewmat_b: [4, 4] world->camera.
+    Returns:
+        (flow [H, W, 2], valid [H, W] bool): invalid where alpha < min_alpha, the depth is not a
+        finite value >= near, or the point lands behind camera b's near plane.
+    """
+    h, w = depth.shape[:2]
+    q = pixel_grid(h, w, depth)
+    d = depth[..., 0]
+    valid = (alpha[..., 0] >= max(min_alpha, 1e-6)) & torch.isfinite(d) & (d >= near)
+    d = torch.where(valid, d, torch.ones_like(d))
+    K_a, K_b = K_a.to(depth.dtype), K_b.to(depth.dtype)
+    x = (q[..., 0] - K_a[0, 2]) / K_a[0, 0]
+    y = (q[..., 1] - K_a[1, 2]) / K_a[1, 1]
+    points_a = torch.stack((x * d, y * d, d), dim=-1)
+    rotation, translation = relative_pose(viewmat_a.to(depth.dtype), viewmat_b.to(depth.dtype))
+    points_b = points_a @ rotation.T + translation
+    z = points_b[..., 2]
+    valid = valid & (z >= near)
+    z = torch.where(valid, z, torch.ones_like(z))
+    px = K_b[0, 0] * points_b[..., 0] / z + K_b[0, 2]
+    py = K_b[1, 1] * points_b[..., 1] / z + K_b[1, 2]
+    flow = torch.stack((px, py), dim=-1) - q
+    valid = valid & torch.isfinite(flow).all(dim=-1)
+    return torch.where(valid.unsqueeze(-1), flow, torch.zeros_like(flow)), valid
+
+
+def camera_motion_pixels(K_b: Tensor, viewmat_a: Tensor, viewmat_b: Tensor, depth: float) -> float:
+    """Rough image motion (pixels) a static point at `depth` sees between the two cameras."""
+    rotation, translation = relative_pose(viewmat_a.double(), viewmat_b.double())
+    cos = ((torch.trace(rotation) - 1.0) / 2.0).clamp(-1.0, 1.0)
+    angle = float(torch.arccos(cos))
+    focal = float(K_b[:2, :2].diagonal().double().mean())
+    return focal * (angle + float(translation.norm()) / max(depth, 1e-6))
+
+
+def full_flow_dense(weights: Tensor, proj_a: Projection, proj_b: Projection) -> Tensor:
+    """Test oracle: the blended flow from explicit per-pixel, per-Gaussian weights.
+
+    Args:
+        weights: [H, W, N] blending weights w_i(q) of view a (e.g. the reference rasterizer
+            compositing an identity feature matrix).
+    Returns:
+        [H, W, 2] = sum_i w_i (A_i (q - m_a,i) + m_b,i) / sum_i w_i - q, with A_i built from explicit
+        matrix square roots (eigendecomposition), independent of `flow_features`.
+    """
+    h, w, n = weights.shape
+    q = pixel_grid(h, w, weights)
+
+    def sqrtm(m: Tensor) -> Tensor:
+        values, vectors = torch.linalg.eigh(m)
+        return vectors @ torch.diag_embed(values.clamp_min(0).sqrt()) @ vectors.transpose(-1, -2)
+
+    A = sqrtm(proj_b.cov2d) @ torch.linalg.inv(sqrtm(proj_a.cov2d))  # [N, 2, 2]
+    offsets = q.unsqueeze(2) - proj_a.means2d  # [H, W, N, 2]
+    targets = torch.einsum("nij,hwnj->hwni", A, offsets) + proj_b.means2d
+    alpha = weights.sum(-1, keepdim=True).clamp_min(1e-12)
+    return (weights.unsqueeze(-1) * targets).sum(2) / alpha - q

@@ -1,0 +1,194 @@
+"""Static/dynamic labels: where motion masks come from, and which initial points are dynamic.
+
+    masks, source = training_masks(cameras, "auto", cache_dir)    # [H, W] bool per training camera
+    depths = aligned_depths(cameras, static_points, masks)        # metric depth per camera, or None
+    is_dynamic = vote_labels(points, cameras, masks, depths, 0.5) # [P] bool
+
+Mask sources, in order for "auto": the dataset's `motion_masks/` (every training camera has one);
+otherwise masks estimated from DIS optical flow and the known cameras
+(`baselines.data.motion_masks`, with the dataset's disparity aligned to metric depth when it has
+one), cached as PNGs in `<cache_dir>/motion_masks/` with a JSON key, so a second run reads them.
+
+Disparity alignment: monocular disparity (NVIDIA's `disp/*.npy`) has an unknown scale and shift
+per frame. For each frame, 1 / z of the static points that project into it (outside its mask) is
+fitted as s * disparity + b by least squares with outlier rejection; a frame with too few points
+or a non-positive fit gets no depth.
+
+Vote: a point is dynamic when, among the training views that see it (in front, inside the image
+and, with depth, not behind the surface), at least `threshold` of them have it inside the mask.
+This labels objects that stay in place (a balloon drifting, an umbrella turning). A fast mover's
+points from one frame fall outside the masks of the others, so the host's static cloud is never
+relabelled by it; such objects get SEEDED dynamic points (seeding.py).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from pathlib import Path
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from baselines.data import Camera
+from baselines.data.motion_masks import estimate_motion_masks
+
+log = logging.getLogger(__name__)
+MIN_FIT_POINTS = 12
+CACHE_VERSION = 1
+
+
+class LabelError(ValueError):
+    """Labels were asked from a source that does not exist for this dataset."""
+
+
+def _np(tensor) -> np.ndarray:
+    return tensor.detach().cpu().double().numpy()
+
+
+def project(points: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(pixel x [P], pixel y [P], depth z [P]) of world points [P, 3] in `camera` (z <= 0: behind)."""
+    viewmat, K = _np(camera.viewmat), _np(camera.K)
+    cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = cam[:, 2]
+    safe = np.where(np.abs(z) > 1e-9, z, 1e-9)
+    return K[0, 0] * cam[:, 0] / safe + K[0, 2], K[1, 1] * cam[:, 1] / safe + K[1, 2], z
+
+
+def dataset_masks(cameras: Sequence[Camera]) -> list[np.ndarray] | None:
+    """The dataset's masks ([H, W] bool) when every camera has one, else None."""
+    if not cameras or any(c.mask is None for c in cameras):
+        return None
+    return [c.mask.detach().cpu().numpy() > 0.5 for c in cameras]
+
+
+def _cache_key(cameras: Sequence[Camera], with_depth: bool) -> str:
+    h = hashlib.sha256(f"v{CACHE_VERSION}|depth={with_depth}".encode())
+    for cam in cameras:
+        h.update(f"{cam.image_name}|{cam.width}x{cam.height}|".encode())
+        h.update(np.ascontiguousarray(_np(cam.viewmat)).tobytes())
+        h.update(np.ascontiguousarray(cam.image.detach().cpu().numpy()[::8, ::8]).tobytes())
+    return h.hexdigest()[:16]
+
+
+def estimated_masks(cameras: Sequence[Camera], cache_dir: Path | None,
+                    depths: Sequence[np.ndarray] | None = None) -> list[np.ndarray]:
+    """Masks from flow vs cameras (sorted by time for the pairing), cached under `cache_dir`."""
+    order = sorted(range(len(cameras)), key=lambda i: (cameras[i].time, cameras[i].frame_index))
+    key = _cache_key(cameras, depths is not None)
+    folder = None if cache_dir is None else Path(cache_dir) / "motion_masks"
+    if folder is not None and (folder / "key.json").is_file():
+        try:
+            stored = json.loads((folder / "key.json").read_text())
+            if stored.get("key") == key:
+                masks = [cv2.imread(str(folder / f"{c.image_name}.png"), cv2.IMREAD_GRAYSCALE) for c in cameras]
+                if all(m is not None and m.shape == (c.height, c.width) for m, c in zip(masks, cameras)):
+                    log.info("motion masks: read %d cached estimates from %s", len(masks), folder)
+                    return [m > 127 for m in masks]
+        except (OSError, json.JSONDecodeError):
+            pass
+    images = [cameras[i].image.detach().cpu().numpy() for i in order]
+    Ks = [_np(cameras[i].K) for i in order]
+    viewmats = [_np(cameras[i].viewmat) for i in order]
+    ordered_depths = None if depths is None else [depths[i] for i in order]
+    ordered, report = estimate_motion_masks(images, Ks, viewmats, ordered_depths)
+    masks: list[np.ndarray] = [None] * len(cameras)  # type: ignore[list-item]
+    for rank, index in enumerate(order):
+        masks[index] = ordered[rank]
+    log.info("motion masks: estimated from optical flow (%s test), mean coverage %.3f",
+             "re-projection" if depths is not None else "epipolar", float(np.mean(report.coverage) if report.coverage else 0))
+    if folder is not None:
+        folder.mkdir(parents=True, exist_ok=True)
+        for mask, cam in zip(masks, cameras):
+            cv2.imwrite(str(folder / f"{cam.image_name}.png"), mask.astype(np.uint8) * 255)
+        tmp = folder / "key.json.tmp"
+        tmp.write_text(json.dumps({"key": key, "depth": depths is not None}))
+        tmp.replace(folder / "key.json")
+    return masks
+
+
+def training_masks(cameras: Sequence[Camera], source: str, cache_dir: Path | None,
+                   depths: Sequence[np.ndarray] | None = None) -> tuple[list[np.ndarray] | None, str]:
+    """(masks or None, where they came from) for `source` in auto | masks | estimate | none."""
+    if source == "none":
+        return None, "none"
+    from_dataset = dataset_masks(cameras)
+    if source == "masks":
+        if from_dataset is None:
+            missing = sum(c.mask is None for c in cameras)
+            raise LabelError(f"label_source=masks: {missing} of {len(cameras)} training views have no motion mask "
+                             "(the dataset has no motion_masks/ folder); use label_source=estimate or auto")
+        return from_dataset, "dataset"
+    if source == "auto" and from_dataset is not None:
+        return from_dataset, "dataset"
+    if len(cameras) < 2:
+        return None, "none (a single view has no flow to test)"
+    return estimated_masks(cameras, cache_dir, depths), "estimated"
+
+
+def fit_disparity(disparity: np.ndarray, inverse_depth: np.ndarray, iterations: int = 3) -> tuple[float, float] | None:
+    """(s, b) with 1 / z ~ s * disparity + b, least squares with 3-sigma outlier rejection."""
+    keep = np.isfinite(disparity) & np.isfinite(inverse_depth)
+    if keep.sum() < MIN_FIT_POINTS:
+        return None
+    for _ in range(iterations):
+        A = np.stack([disparity[keep], np.ones(int(keep.sum()))], 1)
+        (s, b), *_ = np.linalg.lstsq(A, inverse_depth[keep], rcond=None)
+        residual = np.abs(s * disparity + b - inverse_depth)
+        scale = 1.4826 * np.median(residual[keep]) + 1e-12
+        new_keep = keep & (residual <= 3.0 * scale)
+        if new_keep.sum() < MIN_FIT_POINTS or (new_keep == keep).all():
+            break
+        keep = new_keep
+    return (float(s), float(b)) if s > 0 else None
+
+
+def aligned_depths(cameras: Sequence[Camera], static_points: np.ndarray,
+                   masks: Sequence[np.ndarray] | None = None) -> list[np.ndarray] | None:
+    """Metric z-depth [H, W] per camera from its disparity fitted to the static points, or None.
+
+    None when any camera lacks disparity or a fit fails (too few points, non-positive scale).
+    Pixels whose fitted inverse depth is not positive get +inf depth (no evidence).
+    """
+    if not cameras or any(c.disparity is None for c in cameras) or len(static_points) < MIN_FIT_POINTS:
+        return None
+    depths = []
+    for k, cam in enumerate(cameras):
+        disparity = cam.disparity.detach().cpu().numpy().astype(np.float64)
+        x, y, z = project(static_points, cam)
+        col, row = np.floor(x).astype(int), np.floor(y).astype(int)
+        seen = (z > 1e-6) & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+        if masks is not None:
+            seen[seen] &= ~masks[k][row[seen], col[seen]]
+        fit = fit_disparity(disparity[row[seen], col[seen]], 1.0 / z[seen]) if seen.any() else None
+        if fit is None:
+            log.info("disparity of %s could not be aligned to the static points; no depth used", cam.image_name)
+            return None
+        inverse = fit[0] * disparity + fit[1]
+        depths.append(np.where(inverse > 1e-9, 1.0 / np.maximum(inverse, 1e-9), np.inf))
+    return depths
+
+
+def vote_labels(points: np.ndarray, cameras: Sequence[Camera], masks: Sequence[np.ndarray],
+                depths: Sequence[np.ndarray] | None = None, threshold: float = 0.5,
+                depth_tolerance: float = 0.05) -> np.ndarray:
+    """[P] bool: dynamic when inside the mask in >= `threshold` of the views that see the point.
+
+    A view sees a point when it is in front, projects inside the image and (with `depths`) is
+    not more than `depth_tolerance` (relative) behind the view's surface. Points seen by no view
+    are static.
+    """
+    points = np.asarray(points, np.float64)
+    inside_mask = np.zeros(len(points))
+    seen_by = np.zeros(len(points))
+    for k, cam in enumerate(cameras):
+        x, y, z = project(points, cam)
+        col, row = np.floor(x).astype(int), np.floor(y).astype(int)
+        seen = (z > 1e-6) & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+        if depths is not None:
+            surface = depths[k][row[seen], col[seen]]
+            seen[seen] = z[seen] <= surface * (1.0 + depth_tolerance)
+        seen_by += seen
+        inside_mask[seen] += masks[k][row[seen], col[seen]]
+    return (seen_by > 0) & (inside_mask >= threshold * np.maximum(seen_by, 1))

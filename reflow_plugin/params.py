@@ -1,0 +1,95 @@
+"""`ReFlowParams`: the plugin's config group (flags and config-file keys, like every 4DGS group).
+
+Set from config files (``ReFlowParams = dict(lambda_ff=1.0)``, see ``arguments/*/reflow.py``) or
+the command line (``--lambda_ff 1.0``; field names are the flag names). Components (the ablation
+switches) are not here: they are ``--disable``/``--enable`` of the plugin (see plugin.py).
+
+Paper values (appendix A.4): lambda_ff 5.0 / lambda_cf 0.3 for NVIDIA-like scenes, 1.0 / 0.1 for
+HyperNeRF-like scenes; the cross-time weight is 0.1 x the motion-consistency weight; photo =
+0.8 L1 + 0.2 (1 - SSIM) as in 3DGS. Everything else is ours and documented per field.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from arguments import param
+
+LABEL_SOURCES = ("auto", "masks", "estimate", "none")
+STATIC_DECODERS = ("none", "triplane")
+
+
+def _non_negative(value: float) -> str | None:
+    return None if value >= 0 else f"must be >= 0, got {value}"
+
+
+def _positive(value: float) -> str | None:
+    return None if value > 0 else f"must be > 0, got {value}"
+
+
+def _fraction(value: float) -> str | None:
+    return None if 0.0 <= value <= 1.0 else f"must lie in [0, 1], got {value}"
+
+
+def _sigmas(value: list[float]) -> str | None:
+    bad = [s for s in value if not s > 0]
+    return f"blur sigmas must be > 0, got {bad}" if bad else None
+
+
+@dataclass
+class ReFlowParams:
+    """Weights, schedule and options of ReFlow (paper sections 3.2-3.4, appendix A)."""
+
+    # --- loss weights (paper) ---
+    lambda_ff: float = param(5.0, "weight of full flow matching (paper: 5.0 NVIDIA-like, 1.0 HyperNeRF-like)",
+                             check=_non_negative)
+    lambda_cf: float = param(0.3, "weight of camera flow matching (paper: 0.3 NVIDIA-like, 0.1 HyperNeRF-like)",
+                             check=_non_negative)
+    lambda_mc: float = param(1.0, "motion-consistency weight inside each flow matching term", check=_non_negative)
+    cross_time_ratio: float = param(0.1, "cross-time rendering weight as a multiple of lambda_mc (paper: 0.1)",
+                                    check=_non_negative)
+    photo_ssim_weight: float = param(0.2, "weight of (1 - SSIM) in the photometric loss (0.8 L1 + 0.2 D-SSIM)",
+                                     check=_fraction)
+    # --- pairs and flow ---
+    pair_window: int = param(2, "largest distance, in training frames, between the two frames of a pair",
+                             check=_positive)
+    flow_min_alpha: float = param(0.5, "pixels rendered with less opacity than this carry no flow (masked)",
+                                  check=_fraction)
+    flow_blur_sigmas: list[float] = param([], "extra motion-consistency terms on images blurred with these "
+                                              "Gaussian sigmas in pixels (ours, beyond the paper: a wider "
+                                              "capture range for large motion); empty = the paper's loss",
+                                          check=_sigmas)
+    cam_flow_min_motion: float = param(0.05, "skip camera-flow losses on pairs whose cameras move less than "
+                                             "this many pixels (estimated at the scene's median depth)",
+                                       check=_non_negative)
+    occlusion_alpha1: float = param(0.01, "forward-backward occlusion test (component 'occlusion'): "
+                                          "|f + b|^2 < a1 (|f|^2 + |b|^2) + a2", check=_non_negative)
+    occlusion_alpha2: float = param(0.5, "see occlusion_alpha1 (pixels^2)", check=_non_negative)
+    # --- schedule (appendix A.4; ours where noted) ---
+    coarse_static_only: bool = param(True, "coarse stage: dynamic Gaussians frozen, the baseline loss left "
+                                           "out inside motion masks (static scene fitted first)")
+    dynamic_warmup: int = param(0, "fine-stage iterations with the dynamic deformation frozen",
+                                check=_non_negative)
+    protect_dynamic: bool = param(True, "dynamic Gaussians are never pruned (their motion is learned later "
+                                        "than their appearance)")
+    curriculum_fraction: float = param(0.5, "ours: fraction of the fine stage over which pairs spread from "
+                                             "the reference frame of the dynamic points to the whole "
+                                             "sequence (0 = all frames from the start)", check=_fraction)
+    # --- separated model (paper 3.2.2, appendix A.2) ---
+    static_decoder: str = param("none", "time-invariant decoder of static Gaussians: none (canonical values, "
+                                        "cheapest) or triplane (the paper's spatial planes + MLP)",
+                                choices=STATIC_DECODERS)
+    dynamic_zero_init: bool = param(True, "the dynamic branch's output layers start at zero (Gaussians start "
+                                          "at their canonical place at every time)")
+    dynamic_aabb_margin: float = param(0.25, "the dynamic HexPlane's box is the dynamic points' box grown by "
+                                             "this fraction of its size per side", check=_non_negative)
+    # --- labels and seeding ---
+    label_source: str = param("auto", "where static/dynamic labels come from: auto (canonical init, else the "
+                                      "dataset's motion masks, else estimated masks), masks, estimate, none",
+                              choices=LABEL_SOURCES)
+    label_vote: float = param(0.5, "an initial point is dynamic when it lies inside the motion mask in at "
+                                   "least this fraction of the training views that see it", check=_fraction)
+    seed_points: int = param(20_000, "most dynamic points seeded inside the reference frame's motion mask "
+                                     "(0 = no seeding)", check=_non_negative)
+    # --- diagnostics ---
+    flow_vis_every: int = param(500, "write a flow-matching panel [I_a | I_b warped | I_b | error | flow] "
+                                     "every this many fine iterations (0 = never)", check=_non_negative)

@@ -1,0 +1,321 @@
+"""`ReFlowPlugin`: ReFlow (CVPR 2026) wired into the 4DGS host through its hooks only.
+
+    python train.py -s data/nvidia/Skating --plugin reflow [--disable full_flow,cam_flow]
+
+Components (``--disable`` / ``--enable``, the paper's ablation switches):
+    comp_init   complete canonical space (part 2, reflow_plugin.canonical; reported as unavailable
+                when that package is missing, and the run says which initial cloud it used)
+    separation  static/dynamic separated deformation + dynamic points seeded in the motion masks
+    full_flow   full flow matching (L_mc + L_cr on the pair's rendered full flows)
+    cam_flow    camera flow matching on static pixels
+    occlusion   (off by default) forward-backward occlusion masks for full flow matching
+
+Hook by hook (order of hooks.py):
+    on_scene_loaded      pair sampler (errors before long work: a single frame, no pairs)
+    initial_point_cloud  canonical space, or the host's cloud + labels by mask vote + seeded dynamic points
+    build_model          GaussianModel with SeparatedDeformation (separation)
+    on_model_created     labels -> deformation table; dynamic HexPlane box fitted to dynamic points
+    select_batch         a pair (a, b) of nearby training frames (widening from the reference frame)
+    extra_features       per view: 7 full-flow channels towards the other view (fine stage), 1 dynamic-ness channel
+    loss_weights         coarse stage: the baseline loss skips motion-mask pixels (static scene first)
+    extra_losses         ff_mc, ff_cr, cf_mc, cf_cr (matching.py)
+    post_backward        coarse stage: dynamic Gaussians' gradients zeroed (frozen)
+    protected_gaussians  dynamic Gaussians never pruned (protect_dynamic)
+    on_iteration_end     warm-up unfreeze; flow-matching panels (flow_vis_every)
+    on_stage_end         fine stage: flow metrics against ground truth when the dataset has it
+
+Skips (only what the scene calls for): camera flow on pairs whose cameras barely move; the
+dynamic branch when no Gaussian is dynamic (SeparatedDeformation); flow channels and pairs when
+both flow losses are disabled (the host's own sampling then).
+"""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from baselines.data import PointCloud
+from baselines.fourdgs.gaussian_model import GaussianModel
+from baselines.fourdgs.plugins import Plugin
+
+from .evaluate import flow_metrics, summary_line, write_flow_metrics
+from .flow import camera_motion_pixels, flow_features
+from .labels import aligned_depths, training_masks, vote_labels
+from .matching import DYNAMIC_KEY, FLOW_KEY, MatchingConfig, pair_losses
+from .pairs import PairSampler, curriculum_radius
+from .params import ReFlowParams
+from .seeding import BACKGROUND_FACTOR, reference_frame, ring_depth, seed_dynamic_points
+from .separation import SeparatedDeformation
+from .visualize import write_panel
+from .warp import gaussian_blur
+
+log = logging.getLogger("reflow")
+RUN_FOLDER = "reflow"
+
+
+def canonical_available() -> tuple[bool, str]:
+    """(whether reflow_plugin.canonical can be imported, why not)."""
+    try:
+        from . import canonical  # noqa: F401
+    except ImportError as exc:
+        return False, f"reflow_plugin.canonical is not installed ({exc})"
+    return True, ""
+
+
+class ReFlowPlugin(Plugin):
+    name = "reflow"
+    components = ("comp_init", "separation", "full_flow", "cam_flow", "occlusion")
+    default_disabled = ("occlusion",)
+    param_groups = {"ReFlowParams": ReFlowParams}
+
+    def __init__(self, params: Mapping[str, Any] | None = None, enabled: frozenset[str] | None = None) -> None:
+        super().__init__(params, enabled)
+        self.p: ReFlowParams = self.params.get("ReFlowParams") or ReFlowParams()
+        self.sampler: PairSampler | None = None
+        self.masks: list[np.ndarray] | None = None  # per training camera (uid order), True = dynamic
+        self.mask_tensors: dict[int, Tensor] = {}
+        self.labels: np.ndarray | None = None  # per initial point, True = dynamic
+        self.reference: int | None = None  # training camera the dynamic points come from
+        self.scene_depth = 1.0
+        self.info: dict[str, Any] = {}
+        self.config = MatchingConfig(
+            lambda_ff=self.p.lambda_ff, lambda_cf=self.p.lambda_cf, lambda_mc=self.p.lambda_mc,
+            cross_time_ratio=self.p.cross_time_ratio, ssim_weight=self.p.photo_ssim_weight,
+            min_alpha=self.p.flow_min_alpha, blur_sigmas=tuple(self.p.flow_blur_sigmas),
+            occlusion=self.is_enabled("occlusion"), occlusion_alpha1=self.p.occlusion_alpha1,
+            occlusion_alpha2=self.p.occlusion_alpha2)
+        self._blur_cache: dict[tuple[str, float], Tensor] = {}
+        self._camera_motion: dict[tuple[int, int], float] = {}
+        self._last = None
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def uses_pairs(self) -> bool:
+        return self.is_enabled("full_flow") or self.is_enabled("cam_flow")
+
+    def _use_full(self, ctx) -> bool:
+        return self.is_enabled("full_flow") and ctx.stage == "fine" and len(ctx.views) == 2
+
+    def _use_cam(self, ctx) -> bool:
+        if not self.is_enabled("cam_flow") or len(ctx.batch) != 2:
+            return False
+        a, b = ctx.batch
+        key = (a.uid, b.uid)
+        if key not in self._camera_motion:
+            self._camera_motion[key] = camera_motion_pixels(b.K, a.viewmat, b.viewmat, self.scene_depth)
+        return self._camera_motion[key] >= self.p.cam_flow_min_motion
+
+    def _dynamic(self, ctx) -> Tensor:
+        return ctx.model.deformation_table
+
+    def _run_dir(self, ctx) -> Path:
+        return Path(ctx.model_path) / RUN_FOLDER
+
+    # ------------------------------------------------------------------ set-up
+    def on_scene_loaded(self, ctx) -> None:
+        if self.uses_pairs:
+            self.sampler = PairSampler(ctx.train_cameras, self.p.pair_window, seed=ctx.args.opt.seed)
+        available, reason = canonical_available()
+        self.info["components"] = sorted(self.enabled)
+        if self.is_enabled("comp_init") and not available:
+            self.info["comp_init"] = f"unavailable: {reason}"
+            log.warning("comp_init is enabled but %s; the host's initial cloud is used instead", reason)
+
+    def initial_point_cloud(self, ctx) -> PointCloud | None:
+        cameras = ctx.train_cameras
+        host = ctx.point_cloud
+        masks, source = training_masks(cameras, self.p.label_source, self._run_dir(ctx),
+                                       aligned_depths(cameras, host.points))
+        self.masks, self.info["mask_source"] = masks, source
+        if masks is not None:
+            self.mask_tensors = {c.uid: torch.from_numpy(m).to(ctx.device) for c, m in zip(cameras, masks)}
+        if self.is_enabled("comp_init") and canonical_available()[0]:
+            return self._canonical_cloud(ctx, masks)
+        depths = aligned_depths(cameras, host.points, masks)
+        labels = (vote_labels(host.points, cameras, masks, depths, self.p.label_vote) if masks is not None
+                  else np.zeros(len(host), bool))
+        cloud = host
+        self.info["initial_cloud"] = ctx.point_cloud_source
+        if masks is not None and self.is_enabled("separation") and self.p.seed_points > 0:
+            self.reference = reference_frame(cameras, masks)
+            if self.reference is not None:
+                seeds = self._seed(ctx, cameras[self.reference], masks[self.reference], depths, host)
+                if seeds is not None and len(seeds):
+                    cloud = PointCloud(np.concatenate([host.points, seeds.points]),
+                                       np.concatenate([host.colors, seeds.colors]))
+                    labels = np.concatenate([labels, np.ones(len(seeds), bool)])
+                    self.info["initial_cloud"] = f"{ctx.point_cloud_source} + {len(seeds)} seeded dynamic points"
+        self.labels = labels
+        log.info("initial cloud: %s; %d of %d points dynamic (masks: %s)", self.info["initial_cloud"],
+                 int(labels.sum()), len(labels), source)
+        return cloud if cloud is not host else None
+
+    def _seed(self, ctx, camera, mask, depths, host) -> PointCloud | None:
+        if depths is not None:
+            depth, how = depths[self.reference], "aligned disparity"
+        else:
+            ring = ring_depth(camera, mask, host.points)
+            if ring is None:
+                log.warning("no depth for the dynamic seeds of %s (no disparity, no static points nearby)",
+                            camera.image_name)
+                return None
+            depth, how = BACKGROUND_FACTOR * ring, f"{BACKGROUND_FACTOR} x the surrounding static depth"
+        self.info["seed"] = {"frame": camera.image_name, "depth": how}
+        return seed_dynamic_points(camera, mask, depth, self.p.seed_points, seed=ctx.args.opt.seed)
+
+    def _canonical_cloud(self, ctx, masks) -> PointCloud:
+        from .canonical import build_canonical_space, options_from_params
+
+        space = build_canonical_space(ctx.scene, masks, options_from_params(self.p),
+                                      cache_dir=self._run_dir(ctx) / "canonical", progress=not ctx.args.run.quiet)
+        space.write_ply(self._run_dir(ctx))
+        self.reference = space.reference_frame
+        self.labels = np.concatenate([np.zeros(len(space.static), bool), np.ones(len(space.dynamic), bool)])
+        self.info["initial_cloud"] = (f"canonical space: {len(space.static)} static + {len(space.dynamic)} "
+                                      "dynamic points")
+        self.info["canonical"] = space.report
+        return PointCloud(np.concatenate([space.static.points, space.dynamic.points]),
+                          np.concatenate([space.static.colors, space.dynamic.colors]))
+
+    def build_model(self, ctx) -> GaussianModel | None:
+        if not self.is_enabled("separation"):
+            return None
+        deformation = SeparatedDeformation(ctx.args.hidden, self.p.static_decoder, self.p.dynamic_zero_init)
+        return GaussianModel(ctx.args.model.sh_degree, ctx.args.hidden, deformation=deformation)
+
+    def on_model_created(self, ctx) -> None:
+        model = ctx.model
+        labels = self.labels if self.labels is not None and len(self.labels) == model.num_gaussians else None
+        table = torch.zeros(model.num_gaussians, dtype=torch.bool) if labels is None else torch.from_numpy(labels)
+        model.set_deformation_table(table)
+        dynamic = int(table.sum())
+        self.info["labels"] = {"dynamic": dynamic, "static": model.num_gaussians - dynamic}
+        if self.is_enabled("separation"):
+            if dynamic:
+                model.deformation.fit_box(model.get_xyz.detach()[model.deformation_table], self.p.dynamic_aabb_margin)
+            else:
+                log.warning("separation: no Gaussian is labelled dynamic, so the scene is modelled as static "
+                            "(no motion masks: label_source=%s)", self.p.label_source)
+        self._record(ctx)
+
+    def on_load(self, ctx, point_cloud_dir) -> None:
+        table = ctx.model.deformation_table
+        self.info["labels"] = {"dynamic": int(table.sum()), "static": int((~table).sum())}
+
+    def on_stage_start(self, ctx) -> None:
+        means = ctx.model.get_xyz.detach()
+        cam = ctx.train_cameras[0]
+        z = means @ cam.viewmat[:3, :3].T[:, 2] + cam.viewmat[2, 3]
+        z = z[z > 0]
+        self.scene_depth = float(z.median()) if z.numel() else 1.0
+        if ctx.stage == "fine" and self.p.dynamic_warmup > 0 and self.is_enabled("separation"):
+            ctx.model.freeze(["deformation", "grid"])
+
+    # ------------------------------------------------------------------ per iteration
+    def select_batch(self, ctx) -> list | None:
+        if self.sampler is None:
+            return None
+        if ctx.stage == "fine" and self.reference is not None and self.p.curriculum_fraction > 0:
+            total = int(self.p.curriculum_fraction * ctx.stage_iterations)
+            position = self.sampler.position[self.reference]
+            span = max(position, self.sampler.num_frames - 1 - position)
+            i, j = self.sampler.sample(position, curriculum_radius(ctx.iteration, total, span))
+        else:
+            i, j = self.sampler.sample()
+        return [ctx.train_cameras[i], ctx.train_cameras[j]]
+
+    def extra_features(self, ctx, view_index: int) -> dict[str, Tensor] | None:
+        if len(ctx.views) != 2:
+            return None
+        features: dict[str, Tensor] = {}
+        if self._use_full(ctx):
+            features[FLOW_KEY] = flow_features(ctx.views[view_index].projection, ctx.views[1 - view_index].projection)
+        if self._use_cam(ctx):
+            features[DYNAMIC_KEY] = self._dynamic(ctx).to(ctx.views[view_index].colors.dtype).unsqueeze(1)
+        return features
+
+    def loss_weights(self, ctx, view_index: int) -> Tensor | None:
+        if ctx.stage != "coarse" or not self.p.coarse_static_only or not self.mask_tensors:
+            return None
+        mask = self.mask_tensors.get(ctx.views[view_index].camera.uid)
+        return None if mask is None else (~mask).float().unsqueeze(-1)
+
+    def _blurred(self, ctx, k: int, sigma: float) -> tuple[Tensor, Tensor]:
+        images = []
+        for view in (ctx.views[1 - k], ctx.views[k]):
+            key = (view.camera.image_name, sigma)
+            if key not in self._blur_cache:
+                self._blur_cache[key] = gaussian_blur(view.camera.image, sigma)
+            images.append(self._blur_cache[key])
+        return images[0], images[1]
+
+    def extra_losses(self, ctx) -> dict[str, Tensor] | None:
+        use_full, use_cam = self._use_full(ctx), self._use_cam(ctx)
+        if len(ctx.views) != 2 or not (use_full or use_cam):
+            self._last = None
+            return None
+        result = pair_losses(ctx.views, self.config, use_full, use_cam,
+                             lambda k, sigma: self._blurred(ctx, k, sigma))
+        ctx.metrics.update(result.metrics)
+        self._last = result
+        return result.losses
+
+    def post_backward(self, ctx) -> None:
+        if ctx.stage == "coarse" and self.p.coarse_static_only and self.is_enabled("separation"):
+            dynamic = self._dynamic(ctx)
+            if bool(dynamic.any()):
+                ctx.model.zero_row_gradients(dynamic)
+
+    def protected_gaussians(self, ctx) -> Tensor | None:
+        if self.p.protect_dynamic and self.is_enabled("separation"):
+            return self._dynamic(ctx)
+        return None
+
+    def on_iteration_end(self, ctx) -> None:
+        if ctx.stage != "fine":
+            return
+        if self.p.dynamic_warmup > 0 and ctx.iteration == self.p.dynamic_warmup and self.is_enabled("separation"):
+            ctx.model.unfreeze(["deformation", "grid"])
+        every = self.p.flow_vis_every
+        if every and self._last is not None and (ctx.iteration % every == 0 or ctx.iteration == ctx.stage_iterations):
+            direction = self._last.directions[0]
+            if direction.flow is not None:
+                a, b = ctx.views
+                write_panel(self._run_dir(ctx) / "flow_vis" / f"{ctx.iteration:06d}_{a.camera.image_name}_{b.camera.image_name}.png",
+                            a.camera.image.cpu().numpy(), direction.warped.detach().cpu().numpy(),
+                            b.camera.image.cpu().numpy(), direction.valid.cpu().numpy(),
+                            direction.flow.detach().cpu().numpy())
+
+    def on_stage_end(self, ctx) -> None:
+        if ctx.stage != "fine":
+            return
+        method = f"ours_{ctx.iteration}"
+        metrics = flow_metrics(ctx.model, ctx.train_cameras, ctx.test_cameras, Path(ctx.scene.source_path),
+                               ctx.args.pipe.backend, self._run_dir(ctx).parent / "flow" / method, images=4)
+        write_flow_metrics(ctx.model_path, method, metrics)
+        log.info(summary_line(metrics))
+        self._record(ctx)
+
+    def _record(self, ctx) -> None:
+        """The plugin's facts (components, initial cloud, labels) into results.json["reflow"]."""
+        path = Path(ctx.model_path) / "results.json"
+        data = json.loads(path.read_text()) if path.is_file() else {}
+        data["reflow"] = self.info
+        tmp = path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(data, indent=1, sort_keys=True, default=str))
+        tmp.replace(path)
+
+    # ------------------------------------------------------------------ persistence
+    def state_dict(self) -> dict[str, Any]:
+        return {"sampler": self.sampler.state_dict() if self.sampler is not None else None,
+                "reference": self.reference}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        if state.get("sampler") is not None and self.sampler is not None:
+            self.sampler.load_state_dict(state["sampler"])
+        self.reference = state.get("reference")

@@ -1,0 +1,88 @@
+"""Dynamic points for moving objects the initial cloud misses (paper 3.2.2 "Separate Initialization").
+
+    k = reference_frame(cameras, masks)                   # largest mask coverage x colour diversity
+    cloud = seed_dynamic_points(cameras[k], masks[k], depth, max_points)
+
+The host's triangulated cloud drops keypoints inside motion masks on purpose (SfM assumes a
+static scene), so a moving object starts with no Gaussian at all. Seeding back-projects the
+reference frame's masked pixels with a depth map: the dataset's disparity aligned to metric
+depth (labels.aligned_depths) when there is one; otherwise the median depth of the static points
+that project next to the mask (a ring around it), scaled by 0.9 because the object occludes that
+background: a rough guess that flow matching and the photometric loss then correct.
+
+The reference frame is the one whose mask covers most pixels, weighted by the colour diversity
+(mean per-channel standard deviation) of the masked pixels: the frame that shows most of the
+object, and not just a flat patch of it.
+"""
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+
+from baselines.data import Camera, PointCloud
+
+from .labels import project
+
+log = logging.getLogger(__name__)
+RING_PX = 4
+BACKGROUND_FACTOR = 0.9
+
+
+def reference_frame(cameras: list[Camera], masks: list[np.ndarray]) -> int | None:
+    """Index of the frame with the largest (mask coverage x colour diversity); None if all masks are empty."""
+    best, best_score = None, 0.0
+    for k, (cam, mask) in enumerate(zip(cameras, masks)):
+        count = int(mask.sum())
+        if count == 0:
+            continue
+        colours = cam.image.detach().cpu().numpy()[mask]
+        diversity = float(colours.std(axis=0).mean()) if count > 1 else 0.0
+        score = count * (0.05 + diversity)
+        if score > best_score:
+            best, best_score = k, score
+    return best
+
+
+def ring_depth(camera: Camera, mask: np.ndarray, static_points: np.ndarray) -> float | None:
+    """Median depth of the static points projecting into a ring of RING_PX pixels around `mask`."""
+    if len(static_points) == 0:
+        return None
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * RING_PX + 1,) * 2)
+    ring = cv2.dilate(mask.astype(np.uint8), kernel).astype(bool) & ~mask
+    x, y, z = project(np.asarray(static_points, np.float64), camera)
+    col, row = np.floor(x).astype(int), np.floor(y).astype(int)
+    seen = (z > 1e-6) & (col >= 0) & (col < camera.width) & (row >= 0) & (row < camera.height)
+    seen[seen] &= ring[row[seen], col[seen]]
+    if seen.sum() < 3:
+        seen = (z > 1e-6) & (col >= 0) & (col < camera.width) & (row >= 0) & (row < camera.height)
+        if seen.sum() < 3:
+            return None
+    return float(np.median(z[seen]))
+
+
+def seed_dynamic_points(camera: Camera, mask: np.ndarray, depth: np.ndarray | float, max_points: int,
+                        seed: int = 0) -> PointCloud:
+    """Back-project the masked pixels of `camera` ([P, 3] world points, their colours).
+
+    Args:
+        mask: [H, W] bool. depth: [H, W] metric z-depth, or one value for every pixel.
+        max_points: at most this many pixels, evenly subsampled (seeded).
+    Pixels with a non-finite or non-positive depth are skipped.
+    """
+    rows, cols = np.nonzero(mask)
+    z = np.full(len(rows), float(depth)) if np.isscalar(depth) else np.asarray(depth, np.float64)[rows, cols]
+    ok = np.isfinite(z) & (z > 0)
+    rows, cols, z = rows[ok], cols[ok], z[ok]
+    if len(rows) > max_points:
+        keep = np.sort(np.random.default_rng(seed).choice(len(rows), max_points, replace=False))
+        rows, cols, z = rows[keep], cols[keep], z[keep]
+    K = camera.K.detach().cpu().double().numpy()
+    viewmat = camera.viewmat.detach().cpu().double().numpy()
+    x = (cols + 0.5 - K[0, 2]) / K[0, 0] * z
+    y = (rows + 0.5 - K[1, 2]) / K[1, 1] * z
+    cam_points = np.stack([x, y, z], 1)
+    world = (cam_points - viewmat[:3, 3]) @ viewmat[:3, :3]  # R^T (p - t)
+    colours = camera.image.detach().cpu().numpy()[rows, cols]
+    return PointCloud(world.astype(np.float32), np.clip(colours, 0, 1).astype(np.float32))

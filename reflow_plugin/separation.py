@@ -1,0 +1,146 @@
+"""Static/dynamic separated deformation (paper section 3.2.2, appendix A.2).
+
+    deformation = SeparatedDeformation(hidden_args, static_decoder="none", zero_init=True)
+    model = GaussianModel(sh_degree, hidden_args, deformation=deformation)
+    model.set_deformation_table(is_dynamic)      # the labels: 4DGS's "this Gaussian is deformed"
+
+Dynamic Gaussians (deformation table True) go through 4DGS's full HexPlane + delta heads; static
+Gaussians never touch the temporal planes, so the deformation cost follows the number of DYNAMIC
+Gaussians. The module IS a 4DGS `DeformNetwork` (subclass): with `static_decoder="none"` its
+state dict has exactly 4DGS's keys, so a 4DGS `deformation.pth` loads into the dynamic branch and
+ours loads in 4DGS.
+
+Static Gaussians are time-invariant. Two choices (`static_decoder`):
+- "none": their stored (canonical) values are used as they are;
+- "triplane": the paper's D_s: the dynamic branch's SPATIAL planes (xy, xz, yz, shared, as the
+  paper's F_s) are sampled, multiplied per level and decoded by a small MLP into time-invariant
+  deltas of position, log-scale and rotation (state-dict keys `static_decoder.*`, beyond 4DGS's).
+
+Labels are 4DGS's `_deformation_table` ([N] bool): clone/split/prune keep it in step and it is
+saved as `deformation_table.pth`, so labels survive densification and checkpoints for free. A
+table that is all True (any 4DGS checkpoint) makes this module equal to 4DGS's.
+
+`zero_init` zeroes the last layer of every delta head (deltas start at exactly 0, so dynamic
+Gaussians start where the canonical space put them, at every time); 4DGS's Xavier draws happen
+first, so the random stream, hence every other initial weight, equals 4DGS's for a seed.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from baselines.fourdgs.deformation import DeformNetwork
+from baselines.fourdgs.hexplane import PLANE_AXES
+from baselines.fourdgs.plane_lookup import PlaneLayout, plane_product_lookup, planes_to_table
+from baselines.fourdgs.state import GaussianState
+
+SPATIAL_PLANE_INDICES = tuple(i for i, axes in enumerate(PLANE_AXES) if 3 not in axes)  # xy, xz, yz
+
+
+class StaticDecoder(nn.Module):
+    """D_s: spatial-plane features -> time-invariant deltas (position 3, log-scale 3, rotation 4).
+
+    Reads the planes of `grid` (a HexPlaneField) without owning them (they are the dynamic
+    branch's parameters). Output layer zero-initialised: the decoder starts as the identity.
+    """
+
+    def __init__(self, grid: nn.Module, width: int) -> None:
+        super().__init__()
+        self._grid = [grid]  # not a submodule: the planes belong to the dynamic branch
+        levels = len(grid.grids)
+        channels = grid.grids[0][0].shape[1]
+        planes = [level[i] for level in grid.grids for i in SPATIAL_PLANE_INDICES]
+        self.layout = PlaneLayout.build([tuple(p.shape[-2:]) for p in planes],
+                                        [PLANE_AXES[i] for i in SPATIAL_PLANE_INDICES] * levels, 3)
+        self.net = nn.Sequential(nn.Linear(levels * channels, width), nn.ReLU(), nn.Linear(width, 10))
+        nn.init.zeros_(self.net[2].weight)
+        nn.init.zeros_(self.net[2].bias)
+
+    def forward(self, means: Tensor) -> Tensor:
+        """[N, 10] deltas (dx 3, dlog_scale 3, drotation 4) of static Gaussians at `means` [N, 3]."""
+        grid = self._grid[0]
+        planes = [level[i] for level in grid.grids for i in SPATIAL_PLANE_INDICES]
+        features = plane_product_lookup(planes_to_table(planes), self.layout, grid.normalize(means))
+        return self.net(features)
+
+
+class SeparatedDeformation(DeformNetwork):
+    """4DGS's deformation network applied to the dynamic rows only (see the module docstring).
+
+    Args:
+        args: 4DGS ModelHiddenParams-like object (as `DeformNetwork`).
+        static_decoder: "none" or "triplane".
+        zero_init: zero the delta heads' output layers.
+    """
+
+    def __init__(self, args: Any, static_decoder: str = "none", zero_init: bool = True) -> None:
+        super().__init__(args)
+        if static_decoder not in ("none", "triplane"):
+            raise ValueError(f"static_decoder must be 'none' or 'triplane', got {static_decoder!r}")
+        if zero_init:
+            for name in ("pos_deform", "scales_deform", "rotations_deform", "opacity_deform", "shs_deform"):
+                last = getattr(self.deformation_net, name)[3]
+                nn.init.zeros_(last.weight)
+                nn.init.zeros_(last.bias)
+        self.static_decoder = (StaticDecoder(self.deformation_net.grid, self.deformation_net.W)
+                               if static_decoder == "triplane" else None)
+
+    def forward(self, state: GaussianState, times: Tensor, buffers: Mapping[str, Tensor] | None = None) -> GaussianState:
+        """Deform the rows whose `buffers["deformation_table"]` is True (all rows without a table)."""
+        n = state.num_gaussians
+        if times.dim() == 1:
+            times = times.unsqueeze(1)
+        table = (buffers or {}).get("deformation_table")
+        if table is None:
+            table = torch.ones(n, dtype=torch.bool, device=state.means.device)
+        if table.shape != (n,):
+            raise ValueError(f"SeparatedDeformation: deformation_table must be [{n}], got {list(table.shape)}")
+        out = state
+        if self.static_decoder is not None and not bool(table.all()):
+            out = self._decode_static(out, (~table).nonzero().squeeze(1))
+        dynamic = table.nonzero().squeeze(1)
+        if dynamic.numel() == 0:
+            return out
+        if dynamic.numel() == n:
+            return super().forward(out, times)
+        moved = super().forward(out.index(dynamic), times[dynamic])
+        return GaussianState(
+            out.means.index_copy(0, dynamic, moved.means),
+            out.log_scales.index_copy(0, dynamic, moved.log_scales),
+            out.rotations.index_copy(0, dynamic, moved.rotations),
+            out.opacity_logits.index_copy(0, dynamic, moved.opacity_logits),
+            out.shs.index_copy(0, dynamic, moved.shs),
+        )
+
+    def _decode_static(self, state: GaussianState, rows: Tensor) -> GaussianState:
+        deltas = self.static_decoder(state.means[rows])
+        return state.replace(
+            means=state.means.index_add(0, rows, deltas[:, 0:3]),
+            log_scales=state.log_scales.index_add(0, rows, deltas[:, 3:6]),
+            rotations=state.rotations.index_add(0, rows, deltas[:, 6:10]),
+        )
+
+    def get_mlp_parameters(self) -> list[nn.Parameter]:
+        """4DGS's "deformation" group, plus the static decoder's MLP."""
+        extra = list(self.static_decoder.parameters()) if self.static_decoder is not None else []
+        return super().get_mlp_parameters() + extra
+
+    def get_grid_parameters(self) -> list[nn.Parameter]:
+        """4DGS's "grid" group (the static decoder reads these planes, it owns none)."""
+        return self.deformation_net.get_grid_parameters()
+
+    def fit_box(self, points: Tensor, margin: float) -> None:
+        """Set the HexPlane box to `points`' box grown by `margin` x its size per side.
+
+        Called with the DYNAMIC points so the planes' resolution is spent on what moves (the
+        host sets the box from every point). A flat axis gets the largest axis' size.
+        """
+        low, high = points.min(0).values, points.max(0).values
+        size = high - low
+        size = torch.where(size > 1e-6 * size.max().clamp_min(1e-12), size, size.max().clamp_min(1e-3))
+        centre = 0.5 * (low + high)
+        half = 0.5 * size * (1.0 + 2.0 * margin)
+        self.set_aabb(centre + half, centre - half)
