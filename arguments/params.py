@@ -226,6 +226,9 @@ class OptimizationParams:
     prune_min_gaussians: int = param(200_000, "opacity pruning runs only above this many "
                                      "Gaussians (4DGS hard-codes 200000; small CPU scenes want 0)",
                                      ours=True, check=_check_non_negative)
+    densify_grad_from: str = param("baseline", "which losses' screen-space gradients drive densification: "
+                                   "baseline (the photometric reconstruction loss, 4DGS's statistic even "
+                                   "when plugins add losses) or all", ours=True, choices=("baseline", "all"))
 
 
 @dataclass

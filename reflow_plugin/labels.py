@@ -127,7 +127,7 @@ def training_masks(cameras: Sequence[Camera], source: str, cache_dir: Path | Non
     return estimated_masks(cameras, cache_dir, depths), "estimated"
 
 
-def fit_disparity(disparity: np.ndarray, inverse_depth: np.ndarray, iterations: int = 3) -> tuple[float, float] | None:
+def fit_disparity(disparity: np.ndarray, inverse_depth: np.ndarray, iterations: int = 10) -> tuple[float, float] | None:
     """(s, b) with 1 / z ~ s * disparity + b, least squares with 3-sigma outlier rejection."""
     keep = np.isfinite(disparity) & np.isfinite(inverse_depth)
     if keep.sum() < MIN_FIT_POINTS:

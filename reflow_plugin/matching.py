@@ -29,7 +29,7 @@ from torch import Tensor
 from baselines.fourdgs.hooks import ViewRender
 
 from .flow import camera_flow, full_flow
-from .warp import backward_warp, occlusion_mask, photometric_loss
+from .warp import backward_warp, occlusion_mask, photometric_losses
 
 FLOW_KEY = "reflow_flow"
 DYNAMIC_KEY = "reflow_dynamic"
@@ -74,15 +74,29 @@ class PairResult:
     metrics: dict[str, float] = field(default_factory=dict)
 
 
-def _blur_terms(flow: Tensor, mask: Tensor, config: MatchingConfig,
-                blurred: Callable[[float], tuple[Tensor, Tensor]]) -> list[Tensor]:
-    """Motion-consistency terms on blurred images (one per sigma of `config.blur_sigmas`)."""
-    terms = []
-    for sigma in config.blur_sigmas:
-        blur_b, blur_a = blurred(sigma)
-        warped_blur, _ = backward_warp(blur_b, flow)
-        terms.append(photometric_loss(warped_blur, blur_a, mask, config.ssim_weight))
-    return terms
+class _Terms:
+    """Photometric terms collected over both directions, evaluated in one batched call."""
+
+    def __init__(self) -> None:
+        self.names: list[str] = []
+        self.preds: list[Tensor] = []
+        self.targets: list[Tensor] = []
+        self.masks: list[Tensor] = []
+
+    def add(self, name: str, pred: Tensor, target: Tensor, mask: Tensor) -> None:
+        self.names.append(name)
+        self.preds.append(pred)
+        self.targets.append(target)
+        self.masks.append(mask)
+
+    def means(self, ssim_weight: float) -> dict[str, Tensor]:
+        """{name: mean of its terms}."""
+        values = photometric_losses(torch.stack(self.preds), torch.stack(self.targets), torch.stack(self.masks),
+                                    ssim_weight)
+        out: dict[str, Tensor] = {}
+        for name in dict.fromkeys(self.names):
+            out[name] = values[[i for i, n in enumerate(self.names) if n == name]].mean()
+        return out
 
 
 def pair_losses(views: list[ViewRender], config: MatchingConfig, use_full: bool, use_cam: bool,
@@ -96,46 +110,48 @@ def pair_losses(views: list[ViewRender], config: MatchingConfig, use_full: bool,
         blurred: (view index k, sigma) -> (blurred I_other, blurred I_k), for `blur_sigmas`.
     """
     result = PairResult()
+    terms = _Terms()
     full_flows = []
     if use_full:
         for k in range(2):
-            flow, valid = full_flow(views[k].extras[FLOW_KEY], views[k].alpha, config.min_alpha)
-            full_flows.append((flow, valid))
-    mc, cr, cam_mc, cam_cr = [], [], [], []
+            full_flows.append(full_flow(views[k].extras[FLOW_KEY], views[k].alpha, config.min_alpha))
     for k in range(2):
         a, b = views[k], views[1 - k]
-        gt_a, gt_b = a.camera.image, b.camera.image
+        gt_a = a.camera.image
+        sources = torch.cat((b.camera.image, b.image), dim=-1)  # warp ground truth and render together
         direction = Direction()
         if use_full:
             flow, valid = full_flows[k]
-            warped, inside = backward_warp(gt_b, flow)
+            warped, inside = backward_warp(sources, flow)
             mask = valid & inside
             if config.occlusion:
                 mask = mask & occlusion_mask(flow, full_flows[1 - k][0], config.occlusion_alpha1, config.occlusion_alpha2)
-            terms = [photometric_loss(warped, gt_a, mask, config.ssim_weight)]
-            if blurred is not None and config.blur_sigmas:
-                terms += _blur_terms(flow, mask, config, lambda sigma, k=k: blurred(k, sigma))
-            warped_render, _ = backward_warp(b.image, flow)
-            mc.append(torch.stack(terms).mean())
-            cr.append(photometric_loss(warped_render, gt_a, mask, config.ssim_weight))
-            direction.flow, direction.valid, direction.warped = flow, mask, warped
+            terms.add("mc", warped[..., :3], gt_a, mask)
+            terms.add("cr", warped[..., 3:], gt_a, mask)
+            if blurred is not None:
+                for sigma in config.blur_sigmas:
+                    blur_b, blur_a = blurred(k, sigma)
+                    terms.add("mc", backward_warp(blur_b, flow)[0], blur_a, mask)
+            direction.flow, direction.valid, direction.warped = flow, mask, warped[..., :3]
             result.metrics[f"flow_valid_{k}"] = float(mask.float().mean())
         if use_cam:
             flow_c, valid_c = camera_flow(a.depth, a.alpha, a.camera.K, a.camera.viewmat, b.camera.K,
                                           b.camera.viewmat, config.min_alpha)
-            alpha_safe = a.alpha[..., 0].clamp_min(1e-6)
-            static = (a.extras[DYNAMIC_KEY][..., 0] / alpha_safe) < STATIC_BELOW
-            warped_c, inside = backward_warp(gt_b, flow_c)
+            static = (a.extras[DYNAMIC_KEY][..., 0] / a.alpha[..., 0].clamp_min(1e-6)) < STATIC_BELOW
+            warped_c, inside = backward_warp(sources, flow_c)
             mask = valid_c & inside & static
-            warped_render_c, _ = backward_warp(b.image, flow_c)
-            cam_mc.append(photometric_loss(warped_c, gt_a, mask, config.ssim_weight))
-            cam_cr.append(photometric_loss(warped_render_c, gt_a, mask, config.ssim_weight))
+            terms.add("cam_mc", warped_c[..., :3], gt_a, mask)
+            terms.add("cam_cr", warped_c[..., 3:], gt_a, mask)
             direction.cam_flow, direction.static = flow_c, mask
         result.directions.append(direction)
+    if not terms.names:
+        return result
+    means = terms.means(config.ssim_weight)
     if use_full:
-        result.losses["ff_mc"] = config.lambda_ff * config.lambda_mc * torch.stack(mc).mean()
-        result.losses["ff_cr"] = config.lambda_ff * config.lambda_cr * torch.stack(cr).mean()
+        # blurred terms share the "mc" name: L_mc is the mean over the resolution and blur levels
+        result.losses["ff_mc"] = config.lambda_ff * config.lambda_mc * means["mc"]
+        result.losses["ff_cr"] = config.lambda_ff * config.lambda_cr * means["cr"]
     if use_cam:
-        result.losses["cf_mc"] = config.lambda_cf * config.lambda_mc * torch.stack(cam_mc).mean()
-        result.losses["cf_cr"] = config.lambda_cf * config.lambda_cr * torch.stack(cam_cr).mean()
+        result.losses["cf_mc"] = config.lambda_cf * config.lambda_mc * means["cam_mc"]
+        result.losses["cf_cr"] = config.lambda_cf * config.lambda_cr * means["cam_cr"]
     return result

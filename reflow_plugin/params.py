@@ -71,13 +71,25 @@ class ReFlowParams:
                                 check=_non_negative)
     protect_dynamic: bool = param(True, "dynamic Gaussians are never pruned (their motion is learned later "
                                         "than their appearance)")
-    curriculum_fraction: float = param(0.5, "ours: fraction of the fine stage over which pairs spread from "
-                                             "the reference frame of the dynamic points to the whole "
-                                             "sequence (0 = all frames from the start)", check=_fraction)
+    dynamic_init_opacity: float = param(0.9, "opacity of the dynamic Gaussians at initialisation (ours: they come "
+                                             "from a frame where the object is visible; 4DGS starts every "
+                                             "Gaussian at 0.1)", check=_fraction)
+    dynamic_settle_fraction: float = param(0.5, "ours: fraction of the fine stage during which the dynamic "
+                                                "Gaussians' own parameters (opacity, colour, scale, ...) are held "
+                                                "fixed, so the losses can only be lowered by MOVING them: with an "
+                                                "unlearned motion, full flow matching otherwise fades them out",
+                                           check=_fraction)
+    curriculum_fraction: float = param(0.5, "ours, with a single reference frame (dynamic_keyframes 1): "
+                                             "fraction of the fine stage over which pairs spread from the "
+                                             "reference frame to the whole sequence (0 = all frames at once)",
+                                       check=_fraction)
     # --- separated model (paper 3.2.2, appendix A.2) ---
     static_decoder: str = param("none", "time-invariant decoder of static Gaussians: none (canonical values, "
                                         "cheapest) or triplane (the paper's spatial planes + MLP)",
                                 choices=STATIC_DECODERS)
+    dynamic_lr_scale: float = param(1.0, "ours: learning-rate multiplier of the dynamic branch (deformation MLP "
+                                          "and HexPlane); 4DGS's rates learn a deformation of a whole scene, "
+                                          "too slowly for an object crossing the view", check=_positive)
     dynamic_zero_init: bool = param(True, "the dynamic branch's output layers start at zero (Gaussians start "
                                           "at their canonical place at every time)")
     dynamic_aabb_margin: float = param(0.25, "the dynamic HexPlane's box is the dynamic points' box grown by "
@@ -88,8 +100,15 @@ class ReFlowParams:
                               choices=LABEL_SOURCES)
     label_vote: float = param(0.5, "an initial point is dynamic when it lies inside the motion mask in at "
                                    "least this fraction of the training views that see it", check=_fraction)
-    seed_points: int = param(20_000, "most dynamic points seeded inside the reference frame's motion mask "
+    seed_points: int = param(20_000, "most dynamic points seeded inside the motion masks, over all keyframes "
                                      "(0 = no seeding)", check=_non_negative)
+    dynamic_keyframes: int = param(8, "ours: frames the dynamic points are seeded from, spread over the "
+                                      "sequence, each point in a temporal opacity window around its frame; "
+                                      "1 = the paper's single reference frame", check=_positive)
+    relative_time: bool = param(True, "ours: the dynamic branch deforms keyframe seeds at their own time "
+                                      "t - t_keyframe (one motion field shared by every keyframe's copy)")
+    time_scale_lr: float = param(0.005, "learning rate of the log temporal window widths (keyframe seeds)",
+                                 check=_non_negative)
     # --- diagnostics ---
     flow_vis_every: int = param(500, "write a flow-matching panel [I_a | I_b warped | I_b | error | flow] "
                                      "every this many fine iterations (0 = never)", check=_non_negative)

@@ -49,13 +49,15 @@ from .labels import aligned_depths, training_masks, vote_labels
 from .matching import DYNAMIC_KEY, FLOW_KEY, MatchingConfig, pair_losses
 from .pairs import PairSampler, curriculum_radius
 from .params import ReFlowParams
-from .seeding import BACKGROUND_FACTOR, reference_frame, ring_depth, seed_dynamic_points
-from .separation import SeparatedDeformation
+from .seeding import BACKGROUND_FACTOR, keyframes, reference_frame, ring_depth, seed_dynamic_points, window_scale
+from .separation import TIME_CENTER, TIME_LOG_SCALE, SeparatedDeformation
 from .visualize import write_panel
 from .warp import gaussian_blur
 
 log = logging.getLogger("reflow")
 RUN_FOLDER = "reflow"
+HIDDEN_OPACITY = "reflow_hidden_opacity"  # buffer holding the dynamic opacities during the coarse stage
+HIDDEN_LOGIT = -30.0
 
 
 def canonical_available() -> tuple[bool, str]:
@@ -81,6 +83,8 @@ class ReFlowPlugin(Plugin):
         self.mask_tensors: dict[int, Tensor] = {}
         self.labels: np.ndarray | None = None  # per initial point, True = dynamic
         self.reference: int | None = None  # training camera the dynamic points come from
+        self.keyframe_times: list[float] = []
+        self.seed_times: np.ndarray | None = None  # per initial point: keyframe time, NaN if not seeded
         self.scene_depth = 1.0
         self.info: dict[str, Any] = {}
         self.config = MatchingConfig(
@@ -141,32 +145,48 @@ class ReFlowPlugin(Plugin):
                   else np.zeros(len(host), bool))
         cloud = host
         self.info["initial_cloud"] = ctx.point_cloud_source
+        self.seed_times = np.full(len(host), np.nan)
         if masks is not None and self.is_enabled("separation") and self.p.seed_points > 0:
             self.reference = reference_frame(cameras, masks)
             if self.reference is not None:
-                seeds = self._seed(ctx, cameras[self.reference], masks[self.reference], depths, host)
-                if seeds is not None and len(seeds):
+                seeds, times = self._seed_keyframes(ctx, cameras, masks, depths, host)
+                if len(seeds):
                     cloud = PointCloud(np.concatenate([host.points, seeds.points]),
                                        np.concatenate([host.colors, seeds.colors]))
                     labels = np.concatenate([labels, np.ones(len(seeds), bool)])
+                    self.seed_times = np.concatenate([self.seed_times, times])
                     self.info["initial_cloud"] = f"{ctx.point_cloud_source} + {len(seeds)} seeded dynamic points"
         self.labels = labels
         log.info("initial cloud: %s; %d of %d points dynamic (masks: %s)", self.info["initial_cloud"],
                  int(labels.sum()), len(labels), source)
         return cloud if cloud is not host else None
 
-    def _seed(self, ctx, camera, mask, depths, host) -> PointCloud | None:
-        if depths is not None:
-            depth, how = depths[self.reference], "aligned disparity"
-        else:
-            ring = ring_depth(camera, mask, host.points)
-            if ring is None:
-                log.warning("no depth for the dynamic seeds of %s (no disparity, no static points nearby)",
-                            camera.image_name)
-                return None
-            depth, how = BACKGROUND_FACTOR * ring, f"{BACKGROUND_FACTOR} x the surrounding static depth"
-        self.info["seed"] = {"frame": camera.image_name, "depth": how}
-        return seed_dynamic_points(camera, mask, depth, self.p.seed_points, seed=ctx.args.opt.seed)
+    def _seed_keyframes(self, ctx, cameras, masks, depths, host) -> tuple[PointCloud, np.ndarray]:
+        """Dynamic points from the keyframes' masks, and the time each was seeded at."""
+        frames = keyframes(cameras, masks, self.p.dynamic_keyframes, self.reference)
+        budget = max(1, self.p.seed_points // len(frames))
+        clouds, times, used = [], [], []
+        for k in frames:
+            if depths is not None:
+                depth, how = depths[k], "aligned disparity"
+            else:
+                ring = ring_depth(cameras[k], masks[k], host.points)
+                if ring is None:
+                    log.warning("no depth for the dynamic seeds of %s (no disparity, no static points nearby)",
+                                cameras[k].image_name)
+                    continue
+                depth, how = BACKGROUND_FACTOR * ring, f"{BACKGROUND_FACTOR} x the surrounding static depth"
+            seeds = seed_dynamic_points(cameras[k], masks[k], depth, budget, seed=ctx.args.opt.seed + k)
+            clouds.append(seeds)
+            times.append(np.full(len(seeds), cameras[k].time))
+            used.append(cameras[k].image_name)
+        self.keyframe_times = [cameras[k].time for k in frames]
+        self.info["seed"] = {"reference": cameras[self.reference].image_name, "keyframes": used,
+                             "depth": how if clouds else None}
+        if not clouds:
+            return PointCloud(np.zeros((0, 3)), np.zeros((0, 3))), np.zeros(0)
+        return (PointCloud(np.concatenate([c.points for c in clouds]), np.concatenate([c.colors for c in clouds])),
+                np.concatenate(times))
 
     def _canonical_cloud(self, ctx, masks) -> PointCloud:
         from .canonical import build_canonical_space, options_from_params
@@ -185,7 +205,8 @@ class ReFlowPlugin(Plugin):
     def build_model(self, ctx) -> GaussianModel | None:
         if not self.is_enabled("separation"):
             return None
-        deformation = SeparatedDeformation(ctx.args.hidden, self.p.static_decoder, self.p.dynamic_zero_init)
+        deformation = SeparatedDeformation(ctx.args.hidden, self.p.static_decoder, self.p.dynamic_zero_init,
+                                           self.p.relative_time)
         return GaussianModel(ctx.args.model.sh_degree, ctx.args.hidden, deformation=deformation)
 
     def on_model_created(self, ctx) -> None:
@@ -195,7 +216,14 @@ class ReFlowPlugin(Plugin):
         model.set_deformation_table(table)
         dynamic = int(table.sum())
         self.info["labels"] = {"dynamic": dynamic, "static": model.num_gaussians - dynamic}
+        if dynamic and self.is_enabled("separation"):
+            with torch.no_grad():
+                value = torch.logit(torch.tensor(self.p.dynamic_init_opacity).clamp(1e-4, 1 - 1e-4))
+                model._opacity[model.deformation_table] = value
+            self._register_windows(model)
         if self.is_enabled("separation"):
+            for group in ("deformation", "grid"):
+                model.scale_learning_rate(group, self.p.dynamic_lr_scale)
             if dynamic:
                 model.deformation.fit_box(model.get_xyz.detach()[model.deformation_table], self.p.dynamic_aabb_margin)
             else:
@@ -203,7 +231,27 @@ class ReFlowPlugin(Plugin):
                             "(no motion masks: label_source=%s)", self.p.label_source)
         self._record(ctx)
 
+    def _register_windows(self, model: GaussianModel) -> None:
+        """Temporal opacity windows of keyframe seeds (none with a single reference frame)."""
+        times = getattr(self, "seed_times", None)
+        if times is None or len(times) != model.num_gaussians or len(self.keyframe_times) < 2:
+            return
+        seeded = np.isfinite(times)
+        centers = np.where(seeded, times, 0.5)
+        log_scales = np.where(seeded, np.log(window_scale(self.keyframe_times)), np.log(1e3))
+        model.register_gaussian_buffer(TIME_CENTER, torch.as_tensor(centers, dtype=torch.float32).unsqueeze(1))
+        model.register_gaussian_parameter(TIME_LOG_SCALE, torch.as_tensor(log_scales, dtype=torch.float32).unsqueeze(1),
+                                          self.p.time_scale_lr)
+
+    @property
+    def _uses_curriculum(self) -> bool:
+        return (self.reference is not None and self.p.curriculum_fraction > 0
+                and len(self.keyframe_times) == 1)
+
     def on_load(self, ctx, point_cloud_dir) -> None:
+        if self.is_enabled("separation"):
+            for group in ("deformation", "grid"):
+                ctx.model.scale_learning_rate(group, self.p.dynamic_lr_scale)
         table = ctx.model.deformation_table
         self.info["labels"] = {"dynamic": int(table.sum()), "static": int((~table).sum())}
 
@@ -215,12 +263,28 @@ class ReFlowPlugin(Plugin):
         self.scene_depth = float(z.median()) if z.numel() else 1.0
         if ctx.stage == "fine" and self.p.dynamic_warmup > 0 and self.is_enabled("separation"):
             ctx.model.freeze(["deformation", "grid"])
+        self._hide_dynamic_in_coarse(ctx)
+
+    def _hide_dynamic_in_coarse(self, ctx) -> None:
+        """Coarse stage: dynamic Gaussians are made invisible (their opacity kept in a buffer that
+        follows densification), so the static scene is fitted alone; the fine stage restores them."""
+        model = ctx.model
+        if not self.is_enabled("separation") or not self.p.coarse_static_only:
+            return
+        dynamic = model.deformation_table
+        with torch.no_grad():
+            if ctx.stage == "coarse" and bool(dynamic.any()) and HIDDEN_OPACITY not in model.registered_buffers:
+                model.register_gaussian_buffer(HIDDEN_OPACITY, model._opacity.detach().clone())
+                model._opacity[dynamic] = HIDDEN_LOGIT
+            elif ctx.stage == "fine" and HIDDEN_OPACITY in model.registered_buffers:
+                saved = model.pop_gaussian_buffer(HIDDEN_OPACITY)
+                model._opacity[dynamic] = saved[dynamic]
 
     # ------------------------------------------------------------------ per iteration
     def select_batch(self, ctx) -> list | None:
         if self.sampler is None:
             return None
-        if ctx.stage == "fine" and self.reference is not None and self.p.curriculum_fraction > 0:
+        if ctx.stage == "fine" and self._uses_curriculum:
             total = int(self.p.curriculum_fraction * ctx.stage_iterations)
             position = self.sampler.position[self.reference]
             span = max(position, self.sampler.num_frames - 1 - position)
@@ -262,14 +326,20 @@ class ReFlowPlugin(Plugin):
         result = pair_losses(ctx.views, self.config, use_full, use_cam,
                              lambda k, sigma: self._blurred(ctx, k, sigma))
         ctx.metrics.update(result.metrics)
+        dynamic = self._dynamic(ctx)
+        if bool(dynamic.any()):
+            ctx.metrics["dynamic_opacity"] = float(torch.sigmoid(ctx.model._opacity.detach()[dynamic]).mean())
         self._last = result
         return result.losses
 
     def post_backward(self, ctx) -> None:
-        if ctx.stage == "coarse" and self.p.coarse_static_only and self.is_enabled("separation"):
-            dynamic = self._dynamic(ctx)
-            if bool(dynamic.any()):
-                ctx.model.zero_row_gradients(dynamic)
+        if not self.is_enabled("separation"):
+            return
+        settling = ctx.stage == "fine" and ctx.iteration <= self.p.dynamic_settle_fraction * ctx.stage_iterations
+        frozen = (ctx.stage == "coarse" and self.p.coarse_static_only) or settling
+        dynamic = self._dynamic(ctx)
+        if frozen and bool(dynamic.any()):
+            ctx.model.zero_row_gradients(dynamic)
 
     def protected_gaussians(self, ctx) -> Tensor | None:
         if self.p.protect_dynamic and self.is_enabled("separation"):
@@ -313,9 +383,10 @@ class ReFlowPlugin(Plugin):
     # ------------------------------------------------------------------ persistence
     def state_dict(self) -> dict[str, Any]:
         return {"sampler": self.sampler.state_dict() if self.sampler is not None else None,
-                "reference": self.reference}
+                "reference": self.reference, "keyframe_times": list(self.keyframe_times)}
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         if state.get("sampler") is not None and self.sampler is not None:
             self.sampler.load_state_dict(state["sampler"])
         self.reference = state.get("reference")
+        self.keyframe_times = list(state.get("keyframe_times", []))

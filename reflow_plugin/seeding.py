@@ -13,6 +13,12 @@ background: a rough guess that flow matching and the photometric loss then corre
 The reference frame is the one whose mask covers most pixels, weighted by the colour diversity
 (mean per-channel standard deviation) of the masked pixels: the frame that shows most of the
 object, and not just a flat patch of it.
+
+Keyframes (ours, beyond the paper's single reference frame): points can be seeded from several
+frames spread over the sequence, each point living in a temporal opacity window around its
+frame's time (separation.py). One reference frame makes the deformation learn the whole motion
+from one instant, which photometric gradients, local by nature, cannot do for an object that
+crosses the view; with keyframes every point only needs the motion between two keyframes.
 """
 from __future__ import annotations
 
@@ -43,6 +49,35 @@ def reference_frame(cameras: list[Camera], masks: list[np.ndarray]) -> int | Non
         if score > best_score:
             best, best_score = k, score
     return best
+
+
+def keyframes(cameras: list[Camera], masks: list[np.ndarray], count: int, reference: int) -> list[int]:
+    """Up to `count` frames to seed dynamic points from: `reference` plus frames spread evenly in time.
+
+    Only frames whose mask is not empty qualify. Returns camera indices sorted by time.
+    """
+    candidates = sorted((k for k, m in enumerate(masks) if m.any()), key=lambda k: cameras[k].time)
+    if count <= 1 or len(candidates) <= 1:
+        return [reference]
+    if len(candidates) <= count:
+        return candidates
+    times = np.array([cameras[k].time for k in candidates])
+    chosen: list[int] = []
+    for target in np.linspace(times.min(), times.max(), count):  # both ends included
+        order = np.argsort(np.abs(times - target), kind="stable")
+        chosen.append(next(candidates[i] for i in order if candidates[i] not in chosen))
+    if reference not in chosen:  # the reference replaces the pick closest to it in time
+        closest = min(range(len(chosen)), key=lambda i: abs(cameras[chosen[i]].time - cameras[reference].time))
+        chosen[closest] = reference
+    return sorted(chosen, key=lambda k: cameras[k].time)
+
+
+def window_scale(times: list[float]) -> float:
+    """Initial temporal standard deviation of keyframe seeds: 0.6 x the mean keyframe spacing
+    (neighbouring windows overlap, so every time between two keyframes sees at least one)."""
+    if len(times) < 2:
+        return float("inf")
+    return 0.6 * float(np.mean(np.diff(sorted(times))))
 
 
 def ring_depth(camera: Camera, mask: np.ndarray, static_points: np.ndarray) -> float | None:

@@ -20,6 +20,10 @@ Labels are 4DGS's `_deformation_table` ([N] bool): clone/split/prune keep it in 
 saved as `deformation_table.pth`, so labels survive densification and checkpoints for free. A
 table that is all True (any 4DGS checkpoint) makes this module equal to 4DGS's.
 
+Temporal windows (ours, with keyframe seeding): when the model carries the per-Gaussian buffer
+`reflow_time_center` and parameter `reflow_time_log_scale`, a dynamic Gaussian's opacity is
+multiplied by exp(-((t - center) / scale)^2 / 2): it lives around the keyframe it was seeded from.
+
 `zero_init` zeroes the last layer of every delta head (deltas start at exactly 0, so dynamic
 Gaussians start where the canonical space put them, at every time); 4DGS's Xavier draws happen
 first, so the random stream, hence every other initial weight, equals 4DGS's for a seed.
@@ -38,6 +42,19 @@ from baselines.fourdgs.plane_lookup import PlaneLayout, plane_product_lookup, pl
 from baselines.fourdgs.state import GaussianState
 
 SPATIAL_PLANE_INDICES = tuple(i for i, axes in enumerate(PLANE_AXES) if 3 not in axes)  # xy, xz, yz
+TIME_CENTER = "reflow_time_center"  # [N, 1] buffer: the time a dynamic Gaussian was seeded at
+TIME_LOG_SCALE = "reflow_time_log_scale"  # [N, 1] parameter: log of its temporal standard deviation
+
+
+def temporal_window(opacity_logits: Tensor, times: Tensor, centers: Tensor, log_scales: Tensor) -> Tensor:
+    """Opacity logits of Gaussians that live around a time: o(t) = o exp(-((t - c) / s)^2 / 2).
+
+    All [M, 1]. The result is clamped to (1e-6, 1 - 1e-6) before the logit, so values and
+    gradients stay finite far from the centre.
+    """
+    window = torch.exp(-0.5 * ((times - centers) / log_scales.exp()) ** 2)
+    opacity = (torch.sigmoid(opacity_logits) * window).clamp(1e-6, 1.0 - 1e-6)
+    return torch.logit(opacity)
 
 
 class StaticDecoder(nn.Module):
@@ -74,10 +91,13 @@ class SeparatedDeformation(DeformNetwork):
         args: 4DGS ModelHiddenParams-like object (as `DeformNetwork`).
         static_decoder: "none" or "triplane".
         zero_init: zero the delta heads' output layers.
+        relative_time: Gaussians with a `reflow_time_center` are deformed at t - center.
     """
 
-    def __init__(self, args: Any, static_decoder: str = "none", zero_init: bool = True) -> None:
+    def __init__(self, args: Any, static_decoder: str = "none", zero_init: bool = True,
+                 relative_time: bool = True) -> None:
         super().__init__(args)
+        self.relative_time = relative_time
         if static_decoder not in ("none", "triplane"):
             raise ValueError(f"static_decoder must be 'none' or 'triplane', got {static_decoder!r}")
         if zero_init:
@@ -104,16 +124,25 @@ class SeparatedDeformation(DeformNetwork):
         dynamic = table.nonzero().squeeze(1)
         if dynamic.numel() == 0:
             return out
+        centers, log_scales = (buffers or {}).get(TIME_CENTER), (buffers or {}).get(TIME_LOG_SCALE)
+        # Keyframe seeds are deformed in their own time: tau = t - t_k, on 4DGS's whole [-1, 1] axis
+        field_times = times if centers is None or not self.relative_time else times - centers.to(times.dtype)
         if dynamic.numel() == n:
-            return super().forward(out, times)
-        moved = super().forward(out.index(dynamic), times[dynamic])
-        return GaussianState(
-            out.means.index_copy(0, dynamic, moved.means),
-            out.log_scales.index_copy(0, dynamic, moved.log_scales),
-            out.rotations.index_copy(0, dynamic, moved.rotations),
-            out.opacity_logits.index_copy(0, dynamic, moved.opacity_logits),
-            out.shs.index_copy(0, dynamic, moved.shs),
-        )
+            out = super().forward(out, field_times)
+        else:
+            moved = super().forward(out.index(dynamic), field_times[dynamic])
+            out = GaussianState(
+                out.means.index_copy(0, dynamic, moved.means),
+                out.log_scales.index_copy(0, dynamic, moved.log_scales),
+                out.rotations.index_copy(0, dynamic, moved.rotations),
+                out.opacity_logits.index_copy(0, dynamic, moved.opacity_logits),
+                out.shs.index_copy(0, dynamic, moved.shs),
+            )
+        if centers is not None and log_scales is not None:
+            logits = temporal_window(out.opacity_logits[dynamic], times[dynamic].to(centers.dtype),
+                                     centers[dynamic], log_scales[dynamic])
+            out = out.replace(opacity_logits=out.opacity_logits.index_copy(0, dynamic, logits))
+        return out
 
     def _decode_static(self, state: GaussianState, rows: Tensor) -> GaussianState:
         deltas = self.static_decoder(state.means[rows])

@@ -39,27 +39,33 @@ def backward_warp(image: Tensor, flow: Tensor) -> tuple[Tensor, Tensor]:
     return sampled[0].permute(1, 2, 0), inside
 
 
-def photometric_loss(pred: Tensor, target: Tensor, mask: Tensor, ssim_weight: float = 0.2) -> Tensor:
-    """(1 - ssim_weight) L1 + ssim_weight (1 - SSIM), averaged over the pixels where `mask`.
+def photometric_losses(preds: Tensor, targets: Tensor, masks: Tensor, ssim_weight: float = 0.2) -> Tensor:
+    """[B] losses (1 - ssim_weight) L1 + ssim_weight (1 - SSIM), each averaged over its mask.
 
     Args:
-        pred, target: [H, W, C]. mask: [H, W] bool or float weights in [0, 1].
-    Pixels outside the mask are replaced by the target before SSIM's 11x11 window sees them (so
-    garbage there cannot leak in) and carry no gradient. An empty mask gives a zero that is still
-    connected to the graph.
+        preds, targets: [B, H, W, C]. masks: [B, H, W] bool or float weights in [0, 1].
+    Pixels outside a mask are replaced by the target before SSIM's 11x11 window sees them (so
+    garbage there cannot leak in) and carry no gradient. An empty mask gives a zero that is
+    still connected to the graph. One batched SSIM call for all B terms (the per-call overhead
+    of the separable convolutions dominates at training resolutions).
     """
-    weights = mask.to(pred.dtype).unsqueeze(-1)
-    count = weights.sum()
-    if float(count) < 1.0:
-        return (pred * 0.0).sum()
-    filled = torch.where(weights > 0, pred, target)
-    channels = pred.shape[-1]
-    l1 = (weights * (filled - target).abs()).sum() / (count * channels)
-    if ssim_weight == 0:
-        return l1
-    ssim_values = ssim_map(filled, target).mean(dim=-1, keepdim=True)
-    d_ssim = 1.0 - (weights * ssim_values).sum() / count
-    return (1.0 - ssim_weight) * l1 + ssim_weight * d_ssim
+    weights = masks.to(preds.dtype).unsqueeze(-1)  # [B, H, W, 1]
+    counts = weights.sum(dim=(1, 2, 3))  # [B]
+    safe = counts.clamp_min(1.0)
+    filled = torch.where(weights > 0, preds, targets)
+    channels = preds.shape[-1]
+    l1 = (weights * (filled - targets).abs()).sum(dim=(1, 2, 3)) / (safe * channels)
+    loss = l1
+    if ssim_weight != 0:
+        ssim_values = ssim_map(filled, targets).mean(dim=-1, keepdim=True)
+        d_ssim = 1.0 - (weights * ssim_values).sum(dim=(1, 2, 3)) / safe
+        loss = (1.0 - ssim_weight) * l1 + ssim_weight * d_ssim
+    return torch.where(counts >= 1.0, loss, (preds * 0.0).sum(dim=(1, 2, 3)))
+
+
+def photometric_loss(pred: Tensor, target: Tensor, mask: Tensor, ssim_weight: float = 0.2) -> Tensor:
+    """One term of `photometric_losses`: pred, target [H, W, C], mask [H, W] -> scalar."""
+    return photometric_losses(pred.unsqueeze(0), target.unsqueeze(0), mask.unsqueeze(0), ssim_weight)[0]
 
 
 def gaussian_blur(image: Tensor, sigma: float) -> Tensor:

@@ -131,6 +131,8 @@ class GaussianModel:
         self._extra_param_lrs: dict[str, float] = {}
         # group name -> {id(param): requires_grad before freezing}
         self._frozen: dict[str, dict[int, bool]] = {}
+        # group name -> multiplier of its learning rate (plugins; applied on top of the schedules)
+        self._lr_scales: dict[str, float] = {}
 
     # ========================================================================================
     # Activated views (4DGS property names) and basic facts.
@@ -291,8 +293,10 @@ class GaussianModel:
             "scaling": _opt_value(opt, "scaling_lr"),
             "rotation": _opt_value(opt, "rotation_lr"),
         }
-        groups = [{"params": self._group_params(name), "lr": float(lrs[name]), "name": name} for name in GROUP_ORDER]
-        groups += [{"params": [p], "lr": self._extra_param_lrs[n], "name": n} for n, p in self._extra_params.items()]
+        groups = [{"params": self._group_params(name), "lr": float(lrs[name]) * self._lr_scales.get(name, 1.0),
+                   "name": name} for name in GROUP_ORDER]
+        groups += [{"params": [p], "lr": self._extra_param_lrs[n] * self._lr_scales.get(n, 1.0), "name": n}
+                   for n, p in self._extra_params.items()]
         self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
 
         max_steps = _opt_value(opt, "position_lr_max_steps")
@@ -329,8 +333,29 @@ class GaussianModel:
         for group in self.optimizer.param_groups:
             schedule = schedules.get(group["name"])
             if schedule is not None:
-                group["lr"] = rates[group["name"]] = schedule(iteration)
+                group["lr"] = rates[group["name"]] = schedule(iteration) * self._lr_scales.get(group["name"], 1.0)
         return rates
+
+    def scale_learning_rate(self, group_name: str, factor: float) -> None:
+        """Multiply a group's learning rate (and its schedule) by ``factor`` from now on.
+
+        Persistent across ``training_setup`` (every stage); ``factor`` 1 restores the default.
+        E.g. a deformation module that moves only a few Gaussians may learn faster than 4DGS's.
+        """
+        if group_name not in self.group_names:
+            raise ValueError(f"unknown parameter group {group_name!r} (groups: {self.group_names})")
+        if not factor > 0:
+            raise ValueError(f"scale_learning_rate: factor must be > 0, got {factor}")
+        previous = self._lr_scales.get(group_name, 1.0)
+        self._lr_scales[group_name] = float(factor)
+        if self.optimizer is not None:
+            for group in self.optimizer.param_groups:
+                if group["name"] == group_name:
+                    group["lr"] *= factor / previous
+
+    @property
+    def learning_rate_scales(self) -> Mapping[str, float]:
+        return MappingProxyType(self._lr_scales)
 
     @property
     def group_names(self) -> list[str]:

@@ -96,6 +96,7 @@ class Trainer:
         self.cameras_extent = float(scene.nerf_normalization["radius"])
         self.sampler = CameraSampler(self.train_cameras, seed=self.opt.seed)
         self.run_log = RunLog(model_path / "train_log.jsonl", quiet=self.run.quiet)
+        self._densify_grads: list[Tensor | None] | None = None
         self.timer = StageTimer()
 
     # ------------------------------------------------------------------ set-up
@@ -181,13 +182,16 @@ class Trainer:
                 composite_view(view, ctx.background, extra, self.pipe.backend)
 
         with self.timer("loss_backward"):
-            ctx.losses.update(self.baseline_losses())
-            ctx.losses.update(self.hooks.merged("extra_losses", ctx))
+            baseline = self.baseline_losses()
+            ctx.losses.update(baseline)
+            extra = self.hooks.merged("extra_losses", ctx)
+            ctx.losses.update(extra)
             ctx.loss = torch.stack([v.reshape(()) for v in ctx.losses.values()]).sum()
             if not torch.isfinite(ctx.loss):
                 bad = [k for k, v in ctx.losses.items() if not torch.isfinite(v).all()]
                 raise FloatingPointError(f"non-finite loss at {ctx.stage} iteration {ctx.iteration}: {bad}")
             self.hooks.call("pre_backward", ctx)
+            self._densify_grads = self._baseline_screen_grads(baseline) if extra else None
             ctx.loss.backward()
             self.hooks.call("post_backward", ctx)
 
@@ -220,7 +224,7 @@ class Trainer:
             losses = {"l1": (weights * (renders - gts).abs()).sum() / total}
         if self.opt.lambda_dssim != 0:
             if weights is None:
-                losses["dssim"] = self.opt.lambda_dssim * (1.0 - ssim(renders, gts))
+                losses["dssim"] = self.opt.lambda_dssim * (1.0 - ssim(renders, gts)).mean()  # ssim: [B]
             else:
                 losses["dssim"] = self.opt.lambda_dssim * (1.0 - (weights * ssim_map(renders, gts)).sum() / total)
         if ctx.stage == "fine" and self.hidden.time_smoothness_weight != 0:
@@ -246,10 +250,26 @@ class Trainer:
             maps.append(w.to(renders.dtype).detach())
         return torch.stack(maps)
 
+    def _baseline_screen_grads(self, baseline: dict[str, Tensor]) -> list[Tensor | None] | None:
+        """d(baseline loss)/d(means2d) per view, when densification must ignore the plugins' losses.
+
+        4DGS densifies where the reconstruction loss moves the projected means; a plugin's loss
+        (e.g. flow matching) would inflate that statistic. One extra backward through the
+        compositing of each view, only while densification still runs.
+        """
+        ctx = self.ctx
+        if self.opt.densify_grad_from != "baseline" or ctx.iteration >= self.opt.densify_until_iter:
+            return None
+        means2d = [v.projection.means2d for v in ctx.views]
+        if not all(m.requires_grad for m in means2d):
+            return None
+        total = torch.stack([v.reshape(()) for v in baseline.values()]).sum()
+        return list(torch.autograd.grad(total, means2d, retain_graph=True, allow_unused=True))
+
     def _densify(self) -> None:
         ctx = self.ctx
         views = ctx.views
-        grads = [v.projection.means2d.grad for v in views]
+        grads = self._densify_grads or [v.projection.means2d.grad for v in views]
         if any(g is None for g in grads):  # means2d not in the graph (nothing trainable upstream)
             return
         visible = torch.stack([v.projection.visible for v in views]).any(dim=0)

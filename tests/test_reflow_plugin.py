@@ -1,0 +1,236 @@
+"""The ReFlow plugin in the host: registration, bad input, skips, gradients, labels, a short run."""
+from __future__ import annotations
+
+import json
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from arguments import ConfigError
+from baselines.data import load_scene
+from baselines.fourdgs.app import REPO_ROOT, build_trainer, finish_run, render_from_argv
+from baselines.fourdgs.plugins import PluginError, available_plugins
+from baselines.fourdgs.renderer import composite_view, prepare_view
+from baselines.synthetic import get_scene, simulate
+from reflow_plugin.labels import fit_disparity, vote_labels
+from reflow_plugin.matching import MatchingConfig, pair_losses
+from reflow_plugin.pairs import PairError, PairSampler, curriculum_radius
+from reflow_plugin.plugin import ReFlowPlugin
+from reflow_plugin.seeding import reference_frame, seed_dynamic_points
+from tests.test_trainer import FAST
+
+
+def _argv(scene: Path, out: Path, coarse: int, fine: int, *extra: str) -> list[str]:
+    return ["-s", str(scene), "-m", str(out), "--configs", str(REPO_ROOT / "arguments/synthetic/default.py"),
+            "--coarse_iterations", str(coarse), "--iterations", str(fine), *FAST, "--plugin", "reflow",
+            "--flow_vis_every", "0", *extra]
+
+
+def test_registered_through_the_entry_point():
+    assert "reflow" in available_plugins()
+    assert ReFlowPlugin.components[:4] == ("comp_init", "separation", "full_flow", "cam_flow")
+
+
+def test_bad_input_is_rejected_before_training(tiny_scene, tmp_path, capsys):
+    with pytest.raises(PluginError, match="unknown component 'fullflow'"):
+        build_trainer(_argv(tiny_scene, tmp_path / "a", 1, 1, "--disable", "fullflow"))
+    with pytest.raises(SystemExit) as stop:  # a bad flag value: argparse's one-line error, exit code 2
+        build_trainer(_argv(tiny_scene, tmp_path / "b", 1, 1, "--lambda_ff", "-1"))
+    assert stop.value.code == 2 and "--lambda_ff: must be >= 0" in capsys.readouterr().err
+    config = tmp_path / "bad.py"
+    config.write_text("ReFlowParams = dict(lambda_cf=-0.5)\n")
+    with pytest.raises(ConfigError, match="lambda_cf"):
+        build_trainer(_argv(tiny_scene, tmp_path / "b", 1, 1, "--configs", str(config)))
+    single = simulate(get_scene("balloon", frames=2, width=16, height=16), tmp_path / "two", progress=False)
+    trainer = build_trainer(_argv(single, tmp_path / "c", 1, 1))  # --eval: frame 0 tests, 1 frame trains
+    with pytest.raises(PairError, match="1 training frame"):
+        trainer.build()
+
+
+def test_pair_sampler_and_curriculum():
+    cams = [types.SimpleNamespace(time=t, frame_index=i) for i, t in enumerate(np.linspace(0, 1, 10))][::-1]
+    sampler = PairSampler(cams, window=2, seed=0)
+    for _ in range(200):
+        i, j = sampler.sample()
+        assert i != j and 1 <= abs(cams[i].frame_index - cams[j].frame_index) <= 2
+        i, j = sampler.sample(center=5, radius=1)
+        assert {cams[i].frame_index, cams[j].frame_index} <= {4, 5, 6}
+    state = sampler.state_dict()
+    first = [sampler.sample() for _ in range(5)]
+    sampler.load_state_dict(state)
+    assert [sampler.sample() for _ in range(5)] == first
+    assert curriculum_radius(0, 100, 9) == 1 and curriculum_radius(50, 100, 9) == 5 and curriculum_radius(100, 100, 9) == 9
+    with pytest.raises(PairError):
+        PairSampler(cams[:1], 2)
+
+
+def test_reference_frame_and_seeds_back_project_exactly(tiny_scene):
+    scene = load_scene(tiny_scene, eval=True)
+    cams = scene.train_cameras
+    masks = [c.mask.numpy() > 0.5 for c in cams]
+    k = reference_frame(cams, masks)
+    assert k is not None and masks[k].sum() == max(m.sum() for m in masks) or masks[k].sum() > 0
+    depth = 1.0 / cams[k].disparity.numpy()  # the simulator's disparity is exactly 1 / depth
+    seeds = seed_dynamic_points(cams[k], masks[k], depth, 10_000)
+    assert len(seeds) == int(masks[k].sum())
+    from reflow_plugin.labels import project
+    x, y, z = project(seeds.points.astype(np.float64), cams[k])
+    rows, cols = np.nonzero(masks[k])
+    np.testing.assert_allclose(x, cols + 0.5, atol=1e-3)
+    np.testing.assert_allclose(z, depth[rows, cols], rtol=1e-5)
+    labels = vote_labels(seeds.points, [cams[k]], [masks[k]])
+    assert labels.all()
+
+
+def test_disparity_fit_recovers_scale_and_shift():
+    rng = np.random.default_rng(0)
+    inverse_depth = rng.uniform(0.1, 1.0, 200)
+    disparity = (inverse_depth - 0.05) / 2.5
+    disparity[:20] = rng.uniform(0, 1, 20)  # outliers
+    s, b = fit_disparity(disparity, inverse_depth)
+    assert s == pytest.approx(2.5, rel=1e-3) and b == pytest.approx(0.05, abs=1e-3)
+    assert fit_disparity(disparity[:5], inverse_depth[:5]) is None
+
+
+@pytest.fixture(scope="module")
+def built(tiny_scene, tmp_path_factory):
+    trainer = build_trainer(_argv(tiny_scene, tmp_path_factory.mktemp("built") / "run", 2, 2))
+    trainer.build()
+    trainer._begin_stage("fine", 2)  # optimizer built; the dynamic Gaussians visible
+    return trainer
+
+
+def test_labels_and_seeds_from_the_dataset_masks(built):
+    plugin = built.hooks.plugins[0]
+    table = built.ctx.model.deformation_table
+    assert plugin.info["mask_source"] == "dataset"
+    assert int(table.sum()) > 0 and int((~table).sum()) > 0
+    assert "seeded dynamic points" in plugin.info["initial_cloud"]
+    low, high = built.ctx.model.deformation.get_aabb[1], built.ctx.model.deformation.get_aabb[0]
+    dynamic = built.ctx.model.get_xyz.detach()[table]
+    assert ((dynamic >= low) & (dynamic <= high)).all()  # the dynamic HexPlane box holds the dynamic points
+
+
+def _pair_views(trainer, stage="fine", times=(0, 3)):
+    ctx = trainer.ctx
+    plugin = trainer.hooks.plugins[0]
+    ctx.stage, ctx.batch = stage, [trainer.train_cameras[i] for i in times]
+    ctx.views = [prepare_view(ctx.model, c, stage) for c in ctx.batch]
+    for k, view in enumerate(ctx.views):
+        composite_view(view, ctx.background, plugin.extra_features(ctx, k))
+    return ctx.views, plugin
+
+
+def test_flow_matching_gradients_reach_both_times_and_the_network(built):
+    model = built.ctx.model
+    views, plugin = _pair_views(built)
+    for view in views:
+        view.state.means.retain_grad()
+    result = pair_losses(views, MatchingConfig(), use_full=True, use_cam=True)
+    assert set(result.losses) == {"ff_mc", "ff_cr", "cf_mc", "cf_cr"}
+    model.optimizer.zero_grad(set_to_none=True)
+    result.losses["ff_mc"].backward()
+    dynamic = model.deformation_table
+    for view in views:  # L_mc reaches the Gaussians at t_a AND at t_b
+        assert view.state.means.grad[dynamic].abs().sum() > 0
+    assert model._xyz.grad[dynamic].abs().sum() > 0
+    heads = model.deformation.deformation_net.pos_deform[3]
+    assert heads.weight.grad is not None and heads.weight.grad.abs().sum() > 0
+
+
+def test_skips(built):
+    plugin = built.hooks.plugins[0]
+    ctx = built.ctx
+    cam = built.train_cameras[0]
+    ctx.batch = [cam, cam]
+    assert not plugin._use_cam(ctx)  # a pair whose cameras do not move: no camera-flow loss
+    ctx.batch = [built.train_cameras[0], built.train_cameras[1]]
+    assert plugin._use_cam(ctx)
+    views, _ = _pair_views(built, stage="coarse")
+    assert "reflow_flow" not in views[0].extras  # no full flow in the coarse stage (paper A.4)
+    silent = ReFlowPlugin(enabled=frozenset({"separation"}))
+    ctx.views = views
+    assert silent.extra_features(ctx, 0) == {} and silent.extra_losses(ctx) is None
+    assert silent.select_batch(ctx) is None  # no pairs: the host's own sampling
+
+
+def test_coarse_stage_freezes_dynamic_gaussians_and_masks_the_loss(built):
+    plugin = built.hooks.plugins[0]
+    ctx = built.ctx
+    views, _ = _pair_views(built, stage="coarse")
+    weights = plugin.loss_weights(ctx, 0)
+    mask = views[0].camera.mask
+    assert torch.equal(weights[..., 0] == 0, mask > 0.5)
+    model = ctx.model
+    model.optimizer.zero_grad(set_to_none=True)
+    torch.stack([v.image.sum() for v in views]).sum().backward()
+    plugin.post_backward(ctx)
+    dynamic = model.deformation_table
+    assert model._xyz.grad[dynamic].abs().sum() == 0 and model._xyz.grad[~dynamic].abs().sum() > 0
+    ctx.stage = "fine"
+    assert plugin.loss_weights(ctx, 0) is None
+    assert torch.equal(plugin.protected_gaussians(ctx), dynamic)
+
+
+def test_flow_matching_alone_lowers_the_warp_error(tiny_scene, tmp_path):
+    trainer = build_trainer(_argv(tiny_scene, tmp_path / "run", 1, 1, "--disable", "cam_flow"))
+    trainer.build()
+    trainer._begin_stage("fine", 300)
+    model, cams = trainer.ctx.model, sorted(trainer.train_cameras, key=lambda c: c.time)
+    config = MatchingConfig(lambda_ff=1.0)
+
+    def warp_error() -> float:
+        with torch.no_grad():
+            values = []
+            for a, b in zip(cams[:-1], cams[1:]):
+                trainer.ctx.batch = [a, b]
+                views = [prepare_view(model, c, "fine") for c in (a, b)]
+                plugin = trainer.hooks.plugins[0]
+                trainer.ctx.views = views
+                for k, view in enumerate(views):
+                    composite_view(view, trainer.ctx.background, plugin.extra_features(trainer.ctx, k))
+                values.append(float(pair_losses(views, config, True, False).losses["ff_mc"]))
+            return float(np.mean(values))
+
+    before = warp_error()
+    sampler = trainer.hooks.plugins[0].sampler
+    for iteration in range(1, 201):
+        model.update_learning_rate(iteration)
+        i, j = sampler.sample()
+        trainer.ctx.batch = [trainer.train_cameras[i], trainer.train_cameras[j]]
+        views = [prepare_view(model, c, "fine") for c in trainer.ctx.batch]
+        trainer.ctx.views = views
+        for k, view in enumerate(views):
+            composite_view(view, trainer.ctx.background, trainer.hooks.plugins[0].extra_features(trainer.ctx, k))
+        loss = pair_losses(views, config, True, False).losses["ff_mc"]
+        model.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        model.optimizer.step()
+    after = warp_error()
+    assert after < 0.9 * before, (before, after)
+
+
+def test_short_run_writes_every_output(tiny_scene, tmp_path):
+    out = tmp_path / "run"
+    trainer = build_trainer(_argv(tiny_scene, out, 10, 30, "--flow_vis_every", "15"))
+    result = trainer.train()
+    summary = finish_run(trainer, result)
+    config = json.loads((out / "config.json").read_text())
+    assert config["_components"]["reflow"] == ["cam_flow", "comp_init", "full_flow", "separation"]
+    assert config["ReFlowParams"]["lambda_ff"] == 5.0
+    results = json.loads((out / "results.json").read_text())
+    assert results["reflow"]["mask_source"] == "dataset" and results["reflow"]["labels"]["dynamic"] > 0
+    method = f"ours_{result.final_iteration}"
+    assert results[method]["PSNR-dynamic"] is not None and results[method]["PSNR-static"] is not None
+    flow = json.loads((out / "flow_metrics.json").read_text())[method]
+    assert flow["available"] and flow["train"]["pairs"] > 0 and np.isfinite(flow["train"]["epe"])
+    assert len(list((out / "reflow" / "flow_vis").glob("*.png"))) == 2
+    assert summary.evaluation.mean["PSNR"] > 10
+    log = [json.loads(line) for line in (out / "train_log.jsonl").read_text().splitlines()]
+    losses = {k for r in log if r["kind"] == "iter" for k in r.get("losses", {})}
+    assert {"reflow/ff_mc", "reflow/cf_mc"} <= losses, losses
+    written = render_from_argv(["-m", str(out), "--skip_video"])  # render.py restores the plugin
+    assert (written["test"] / "renders" / "00000.png").is_file()
