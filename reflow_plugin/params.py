@@ -54,9 +54,9 @@ class ReFlowParams:
                              check=_positive)
     flow_min_alpha: float = param(0.5, "pixels rendered with less opacity than this carry no flow (masked)",
                                   check=_fraction)
-    flow_blur_sigmas: list[float] = param([], "extra motion-consistency terms on images blurred with these "
-                                              "Gaussian sigmas in pixels (ours, beyond the paper: a wider "
-                                              "capture range for large motion); empty = the paper's loss",
+    flow_blur_sigmas: list[float] = param([2.0, 4.0], "extra motion-consistency terms on images blurred with "
+                                              "these Gaussian sigmas in pixels (ours, beyond the paper: a wider "
+                                              "capture range for large motion); [] = the paper's loss",
                                           check=_sigmas)
     cam_flow_min_motion: float = param(0.05, "skip camera-flow losses on pairs whose cameras move less than "
                                              "this many pixels (estimated at the scene's median depth)",
@@ -87,7 +87,7 @@ class ReFlowParams:
     static_decoder: str = param("none", "time-invariant decoder of static Gaussians: none (canonical values, "
                                         "cheapest) or triplane (the paper's spatial planes + MLP)",
                                 choices=STATIC_DECODERS)
-    dynamic_lr_scale: float = param(1.0, "ours: learning-rate multiplier of the dynamic branch (deformation MLP "
+    dynamic_lr_scale: float = param(10.0, "ours: learning-rate multiplier of the dynamic branch (deformation MLP "
                                           "and HexPlane); 4DGS's rates learn a deformation of a whole scene, "
                                           "too slowly for an object crossing the view", check=_positive)
     dynamic_zero_init: bool = param(True, "the dynamic branch's output layers start at zero (Gaussians start "
@@ -107,6 +107,8 @@ class ReFlowParams:
                                       "1 = the paper's single reference frame", check=_positive)
     relative_time: bool = param(True, "ours: the dynamic branch deforms keyframe seeds at their own time "
                                       "t - t_keyframe (one motion field shared by every keyframe's copy)")
+    anchor_keyframes: bool = param(True, "ours: keyframe seeds are deformed by D(x, t - t_k) - D(x, 0), so they "
+                                         "sit exactly where they were seeded at their own time")
     time_scale_lr: float = param(0.005, "learning rate of the log temporal window widths (keyframe seeds)",
                                  check=_non_negative)
     # --- diagnostics ---

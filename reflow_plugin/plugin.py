@@ -206,7 +206,7 @@ class ReFlowPlugin(Plugin):
         if not self.is_enabled("separation"):
             return None
         deformation = SeparatedDeformation(ctx.args.hidden, self.p.static_decoder, self.p.dynamic_zero_init,
-                                           self.p.relative_time)
+                                           self.p.relative_time, self.p.anchor_keyframes)
         return GaussianModel(ctx.args.model.sh_degree, ctx.args.hidden, deformation=deformation)
 
     def on_model_created(self, ctx) -> None:

@@ -23,6 +23,12 @@ table that is all True (any 4DGS checkpoint) makes this module equal to 4DGS's.
 Temporal windows (ours, with keyframe seeding): when the model carries the per-Gaussian buffer
 `reflow_time_center` and parameter `reflow_time_log_scale`, a dynamic Gaussian's opacity is
 multiplied by exp(-((t - center) / scale)^2 / 2): it lives around the keyframe it was seeded from.
+With `relative_time` such a Gaussian is deformed at tau = t - center (one motion field shared by
+every keyframe's copy of the object) and, `anchored`, by D(x, tau) - D(x, 0): it sits EXACTLY
+where it was seeded at its own time, whatever the field learns. Without the anchor the field's
+value at tau = 0 is free, and a loss that asks for motion at tau != 0 (flow matching) drags the
+seeds away from their keyframe through the shared plane cells (measured: training-view
+PSNR-dynamic 32.8 -> 19 dB in 300 flow-only steps; README, "What the flow loss needs").
 
 `zero_init` zeroes the last layer of every delta head (deltas start at exactly 0, so dynamic
 Gaussians start where the canonical space put them, at every time); 4DGS's Xavier draws happen
@@ -92,12 +98,15 @@ class SeparatedDeformation(DeformNetwork):
         static_decoder: "none" or "triplane".
         zero_init: zero the delta heads' output layers.
         relative_time: Gaussians with a `reflow_time_center` are deformed at t - center.
+        anchored: with relative time, deform by D(x, t - center) - D(x, 0): exactly no motion at
+            the Gaussian's own time (see the module docstring).
     """
 
     def __init__(self, args: Any, static_decoder: str = "none", zero_init: bool = True,
-                 relative_time: bool = True) -> None:
+                 relative_time: bool = True, anchored: bool = True) -> None:
         super().__init__(args)
         self.relative_time = relative_time
+        self.anchored = anchored
         if static_decoder not in ("none", "triplane"):
             raise ValueError(f"static_decoder must be 'none' or 'triplane', got {static_decoder!r}")
         if zero_init:
@@ -127,10 +136,14 @@ class SeparatedDeformation(DeformNetwork):
         centers, log_scales = (buffers or {}).get(TIME_CENTER), (buffers or {}).get(TIME_LOG_SCALE)
         # Keyframe seeds are deformed in their own time: tau = t - t_k, on 4DGS's whole [-1, 1] axis
         field_times = times if centers is None or not self.relative_time else times - centers.to(times.dtype)
-        if dynamic.numel() == n:
+        relative = centers is not None and self.relative_time
+        if dynamic.numel() == n and not relative:
             out = super().forward(out, field_times)
         else:
-            moved = super().forward(out.index(dynamic), field_times[dynamic])
+            if relative and self.anchored:
+                moved = self._anchored_forward(out.index(dynamic), field_times[dynamic])
+            else:
+                moved = super().forward(out.index(dynamic), field_times[dynamic])
             out = GaussianState(
                 out.means.index_copy(0, dynamic, moved.means),
                 out.log_scales.index_copy(0, dynamic, moved.log_scales),
@@ -143,6 +156,24 @@ class SeparatedDeformation(DeformNetwork):
                                      centers[dynamic], log_scales[dynamic])
             out = out.replace(opacity_logits=out.opacity_logits.index_copy(0, dynamic, logits))
         return out
+
+    def _anchored_forward(self, state: GaussianState, taus: Tensor) -> GaussianState:
+        """state deformed by D(x, tau) - D(x, 0) ([M] rows, taus [M, 1]): one network call on 2M rows.
+
+        Rotations take the additive difference (4DGS's default `apply_rotation=False` adds its
+        rotation delta, so this is exact there).
+        """
+        m = state.num_gaussians
+        both = super().forward(state.index(torch.cat((torch.arange(m, device=taus.device),) * 2)),
+                               torch.cat((taus, torch.zeros_like(taus))))
+        at, zero = both.index(slice(0, m)), both.index(slice(m, 2 * m))
+        return GaussianState(
+            state.means + (at.means - zero.means),
+            state.log_scales + (at.log_scales - zero.log_scales),
+            state.rotations + (at.rotations - zero.rotations),
+            state.opacity_logits + (at.opacity_logits - zero.opacity_logits),
+            state.shs + (at.shs - zero.shs),
+        )
 
     def _decode_static(self, state: GaussianState, rows: Tensor) -> GaussianState:
         deltas = self.static_decoder(state.means[rows])

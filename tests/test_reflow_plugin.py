@@ -175,44 +175,6 @@ def test_coarse_stage_freezes_dynamic_gaussians_and_masks_the_loss(built):
     assert torch.equal(plugin.protected_gaussians(ctx), dynamic)
 
 
-def test_flow_matching_alone_lowers_the_warp_error(tiny_scene, tmp_path):
-    trainer = build_trainer(_argv(tiny_scene, tmp_path / "run", 1, 1, "--disable", "cam_flow"))
-    trainer.build()
-    trainer._begin_stage("fine", 300)
-    model, cams = trainer.ctx.model, sorted(trainer.train_cameras, key=lambda c: c.time)
-    config = MatchingConfig(lambda_ff=1.0)
-
-    def warp_error() -> float:
-        with torch.no_grad():
-            values = []
-            for a, b in zip(cams[:-1], cams[1:]):
-                trainer.ctx.batch = [a, b]
-                views = [prepare_view(model, c, "fine") for c in (a, b)]
-                plugin = trainer.hooks.plugins[0]
-                trainer.ctx.views = views
-                for k, view in enumerate(views):
-                    composite_view(view, trainer.ctx.background, plugin.extra_features(trainer.ctx, k))
-                values.append(float(pair_losses(views, config, True, False).losses["ff_mc"]))
-            return float(np.mean(values))
-
-    before = warp_error()
-    sampler = trainer.hooks.plugins[0].sampler
-    for iteration in range(1, 201):
-        model.update_learning_rate(iteration)
-        i, j = sampler.sample()
-        trainer.ctx.batch = [trainer.train_cameras[i], trainer.train_cameras[j]]
-        views = [prepare_view(model, c, "fine") for c in trainer.ctx.batch]
-        trainer.ctx.views = views
-        for k, view in enumerate(views):
-            composite_view(view, trainer.ctx.background, trainer.hooks.plugins[0].extra_features(trainer.ctx, k))
-        loss = pair_losses(views, config, True, False).losses["ff_mc"]
-        model.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        model.optimizer.step()
-    after = warp_error()
-    assert after < 0.9 * before, (before, after)
-
-
 def test_short_run_writes_every_output(tiny_scene, tmp_path):
     out = tmp_path / "run"
     trainer = build_trainer(_argv(tiny_scene, out, 10, 30, "--flow_vis_every", "15"))

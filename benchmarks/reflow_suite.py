@@ -1,0 +1,130 @@
+"""Baseline vs ReFlow on the synthetic suite: test PSNR/SSIM, dynamic-region PSNR, flow EPE, time.
+
+    python benchmarks/reflow_suite.py [--scenes balloon,playground,skating,truck,umbrella]
+                                      [--out output/suite] [--jobs 1] [-- extra train.py flags]
+
+Each (scene, method) is an ordinary `train.py` run in `OUT/<scene>/<method>` with the scene's
+synthetic config (`arguments/synthetic/default.py`, ReFlow: `arguments/synthetic/reflow.py`), the
+full schedule. A run whose `results.json` exists is reused (a killed sweep resumes). The baseline's
+flow is measured afterwards with `python -m reflow_plugin.evaluate` (the same renderer ReFlow's
+own evaluation uses). Prints one Markdown table (per scene and mean) and writes it with the raw
+figures to `OUT/suite.md` / `OUT/suite.json`. `--jobs 2` runs two trainings at once with one
+thread each (about as fast in total on 2 cores, and the wall-clock column is then not comparable
+with a quiet single run).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+SCENES = ("balloon", "playground", "skating", "truck", "umbrella")
+METHODS = {
+    "baseline": ["--configs", "arguments/synthetic/default.py"],
+    "reflow": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow"],
+}
+
+
+def _latest(results: dict) -> tuple[str, dict]:
+    key = max((k for k in results if k.startswith("ours_")), key=lambda k: int(k.split("_")[1]))
+    return key, results[key]
+
+
+def run_one(scene: str, method: str, out: Path, extra: list[str], threads: int | None) -> Path:
+    """Train (unless done) and measure the flow of one (scene, method); returns the run folder."""
+    run = out / scene / method
+    env = dict(os.environ)
+    if threads:
+        env["OMP_NUM_THREADS"] = str(threads)
+    if not (run / "results.json").is_file():
+        source = ROOT / "data" / "synthetic" / scene
+        if not (source / "poses_bounds.npy").is_file():
+            subprocess.run([sys.executable, "-m", "baselines.synthetic", "--scene", scene, "--out", str(source), "--quiet"], cwd=ROOT,
+                           check=True, env=env)
+        cmd = [sys.executable, "train.py", "-s", str(source), "-m", str(run), "--quiet", *METHODS[method], *extra]
+        run.mkdir(parents=True, exist_ok=True)
+        with open(run / "suite_train.log", "w") as log:
+            subprocess.run(cmd, cwd=ROOT, check=True, env=env, stdout=log, stderr=subprocess.STDOUT)
+    method_key, _ = _latest(json.loads((run / "results.json").read_text()))
+    flow_file = run / "flow_metrics.json"
+    if not flow_file.is_file() or method_key not in json.loads(flow_file.read_text()):
+        subprocess.run([sys.executable, "-m", "reflow_plugin.evaluate", "-m", str(run)], cwd=ROOT, check=True, env=env,
+                       stdout=subprocess.DEVNULL)
+    return run
+
+
+def summarise(run: Path) -> dict:
+    """The figures of one finished run."""
+    key, metrics = _latest(json.loads((run / "results.json").read_text()))
+    flow = json.loads((run / "flow_metrics.json").read_text()).get(key, {})
+    log = [json.loads(line) for line in (run / "train_log.jsonl").read_text().splitlines()]
+    end = [r for r in log if r["kind"] == "train_end"]
+    row = {"PSNR": metrics["PSNR"], "SSIM": metrics["SSIM"], "PSNR-dynamic": metrics.get("PSNR-dynamic"),
+           "PSNR-static": metrics.get("PSNR-static"), "train_s": end[-1]["wall_seconds"] if end else None}
+    if flow.get("available"):
+        row.update({"EPE-train": flow["train"]["epe"], "EPE-train-dynamic": flow["train"]["epe_dynamic"],
+                    "EPE-test": flow["test"]["epe"], "EPE-test-dynamic": flow["test"]["epe_dynamic"]})
+    return row
+
+
+COLUMNS = ("PSNR", "SSIM", "PSNR-dynamic", "PSNR-static", "EPE-train", "EPE-train-dynamic", "EPE-test",
+           "EPE-test-dynamic", "train_s")
+
+
+def table(rows: dict[str, dict[str, dict]]) -> str:
+    """Markdown: one line per (scene, method), then the mean per method."""
+    fmt = {"SSIM": "{:.3f}", "train_s": "{:.0f}"}
+    lines = ["| scene | method | " + " | ".join(COLUMNS) + " |", "|" + "---|" * (len(COLUMNS) + 2)]
+
+    def cells(values: dict) -> str:
+        return " | ".join("-" if values.get(c) is None else fmt.get(c, "{:.2f}").format(values[c]) for c in COLUMNS)
+
+    for scene, methods in rows.items():
+        for method, values in methods.items():
+            lines.append(f"| {scene} | {method} | {cells(values)} |")
+    for method in METHODS:
+        got = [m[method] for m in rows.values() if method in m]
+        mean = {c: float(np.mean([g[c] for g in got])) for c in COLUMNS if got and all(g.get(c) is not None for g in got)}
+        lines.append(f"| **mean** | {method} | {cells(mean)} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra: list[str] = []
+    if "--" in argv:
+        extra, argv = argv[argv.index("--") + 1:], argv[:argv.index("--")]
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", default=",".join(SCENES))
+    parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--out", type=Path, default=ROOT / "output" / "suite")
+    parser.add_argument("--jobs", type=int, default=1)
+    args = parser.parse_args(argv)
+    scenes, methods = args.scenes.split(","), args.methods.split(",")
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        parser.error(f"unknown method(s) {unknown}; known: {list(METHODS)}")
+    threads = max(1, (os.cpu_count() or 1) // args.jobs) if args.jobs > 1 else None
+    jobs = [(s, m) for s in scenes for m in methods]
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        runs = list(pool.map(lambda job: run_one(job[0], job[1], args.out, extra, threads), jobs))
+    rows: dict[str, dict[str, dict]] = {}
+    for (scene, method), run in zip(jobs, runs):
+        rows.setdefault(scene, {})[method] = summarise(run)
+    text = table(rows)
+    print(text)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "suite.md").write_text(text + "\n")
+    (args.out / "suite.json").write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

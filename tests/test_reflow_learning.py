@@ -1,0 +1,153 @@
+"""Flow matching ALONE teaches motion: a raw shift, and the dynamic branch of the separated model.
+
+A textured carpet of Gaussians faces a fixed camera; frame b shows it shifted by a known number
+of pixels. Only L_mc (the warp of I_b by the rendered full flow against I_a) is minimised, so any
+recovered motion comes from flow matching. These are small versions of what the embedded scene
+measures (README, "What the flow loss needs").
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from baselines.fourdgs.gaussian_model import GaussianModel
+from baselines.render import composite, project_gaussians
+from reflow_plugin.flow import flow_features, full_flow
+from reflow_plugin.separation import TIME_CENTER, SeparatedDeformation
+from reflow_plugin.warp import backward_warp, gaussian_blur, photometric_loss
+from tests._model_helpers import hidden_args, opt_args
+from tests.raster_cases import intrinsics
+
+WIDTH, HEIGHT, DEPTH = 40, 32, 4.0
+K = intrinsics(WIDTH, HEIGHT, focal=32.0)
+PIXEL = DEPTH / float(K[0, 0])  # world units per pixel at the carpet's depth
+
+
+def _carpet(rows: int = 30) -> tuple[torch.Tensor, torch.Tensor]:
+    """(means [rows^2, 3] on a plane at DEPTH overfilling the image, colours [rows^2, 3])."""
+    torch.manual_seed(0)
+    u, v = torch.meshgrid(torch.linspace(-4, WIDTH + 4, rows), torch.linspace(-4, HEIGHT + 4, rows), indexing="xy")
+    means = torch.stack([(u - K[0, 2]) / K[0, 0] * DEPTH, (v - K[1, 2]) / K[1, 1] * DEPTH,
+                         torch.full_like(u, DEPTH)], -1).reshape(-1, 3)
+    return means, torch.rand(means.shape[0], 3)
+
+
+def _project(means, quats, scales, opacities):
+    return project_gaussians(means, quats, scales, torch.eye(4), K, WIDTH, HEIGHT, opacities=opacities, backend="cpu")
+
+
+def _warp_loss(proj_a, proj_b, opacities, image_a, image_b, sigmas=(0.0,)) -> torch.Tensor:
+    """L_mc of direction a -> b averaged over blur levels (sigma 0 = full resolution).
+
+    reflow_plugin.matching uses (0, *flow_blur_sigmas).
+    """
+    maps, _, alpha = composite(proj_a, opacities, flow_features(proj_a, proj_b), WIDTH, HEIGHT, backend="cpu")
+    flow, valid = full_flow(maps, alpha, 0.5)
+    terms = []
+    for sigma in sigmas:
+        a, b = (image_a, image_b) if not sigma else (gaussian_blur(image_a, sigma), gaussian_blur(image_b, sigma))
+        warped, inside = backward_warp(b, flow)
+        terms.append(photometric_loss(warped, a, valid & inside))
+    return torch.stack(terms).mean()
+
+
+def _shift_fit(shift_px: float, sigmas: tuple[float, ...], steps: int = 80) -> torch.Tensor:
+    """Remaining error (x, y) in pixels of a raw shift of the carpet after `steps` Adam steps of L_mc."""
+    means, colours = _carpet()
+    n = means.shape[0]
+    scales = torch.tensor([[0.09, 0.09, 0.01]]).repeat(n, 1)
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1)
+    opac = torch.full((n,), 0.95)
+    true = torch.tensor([shift_px, -0.5 * shift_px, 0.0]) * PIXEL
+    images = [composite(_project(m, quats, scales, opac), opac, colours, WIDTH, HEIGHT, backend="cpu")[0]
+              for m in (means, means + true)]
+    proj_a = _project(means, quats, scales, opac)
+    shift = torch.zeros(3, requires_grad=True)
+    optimizer = torch.optim.Adam([shift], lr=0.1 * PIXEL)
+    for _ in range(steps):
+        loss = _warp_loss(proj_a, _project(means + shift, quats, scales, opac), opac, *images, sigmas=sigmas)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    return (shift.detach()[:2] - true[:2]) / PIXEL
+
+
+def test_flow_matching_alone_recovers_a_shift_and_blur_widens_its_range():
+    assert _shift_fit(2.0, (0.0,)).abs().max() < 0.1
+    # the photometric capture range is about the texture's scale: 7 px is out of it at full
+    # resolution, and inside it on blurred images
+    assert _shift_fit(7.0, (0.0,)).abs().max() > 2.0
+    assert _shift_fit(7.0, (3.0,)).abs().max() < 0.5
+
+
+def _anchored_carpet_model(anchored: bool) -> GaussianModel:
+    """All-dynamic separated model of the carpet, every Gaussian seeded at t = 0."""
+    means, colours = _carpet(rows=24)
+    torch.manual_seed(0)
+    means[:, 2] += 0.01 * torch.rand(means.shape[0])  # the host sizes the planes from the cloud's box
+    model = GaussianModel(0, hidden_args(), deformation=SeparatedDeformation(hidden_args(), anchored=anchored))
+    model.create_from_pcd(means.numpy(), colours.numpy(), spatial_lr_scale=1.0)
+    with torch.no_grad():
+        model._opacity.fill_(math.log(0.95 / 0.05))
+        model._scaling.copy_(torch.log(torch.tensor([0.11, 0.11, 0.01])).expand_as(model._scaling))
+    model.set_deformation_table(torch.ones(model.num_gaussians, dtype=torch.bool))
+    model.register_gaussian_buffer(TIME_CENTER, torch.zeros(model.num_gaussians, 1))
+    model.training_setup(opt_args())
+    model.deformation.fit_box(model.get_xyz.detach(), 0.2)
+    return model
+
+
+def test_flow_matching_alone_teaches_the_dynamic_branch_a_motion():
+    """Keyframe seeds (anchored) learn a 5 px motion from L_mc alone and stay put at their own time."""
+    model = _anchored_carpet_model(anchored=True)
+    canonical = model.get_xyz.detach().clone()
+    true = torch.tensor([5.0, 2.0, 0.0]) * PIXEL
+    t_b = 0.1
+    state = model.deform(0.0, "fine")
+    image_a = composite(_project(state.means, state.quats, state.scales, state.opacities), state.opacities,
+                        state.shs[:, 0].detach(), WIDTH, HEIGHT, backend="cpu")[0].detach()
+    image_b = composite(_project(state.means + true, state.quats, state.scales, state.opacities), state.opacities,
+                        state.shs[:, 0].detach(), WIDTH, HEIGHT, backend="cpu")[0].detach()
+    model.freeze(["xyz", "f_dc", "f_rest", "opacity", "scaling", "rotation"])
+    for group in ("deformation", "grid"):
+        model.scale_learning_rate(group, 10.0)
+
+    def motion_error() -> float:
+        with torch.no_grad():
+            moved = model.deform(t_b, "fine").means - canonical
+        return float(((moved - true)[:, :2] / PIXEL).norm(dim=1).median())
+
+    before = motion_error()
+    for iteration in range(1, 121):
+        model.update_learning_rate(iteration)
+        a, b = model.deform(0.0, "fine"), model.deform(t_b, "fine")
+        proj_a = _project(a.means, a.quats, a.scales, a.opacities)
+        proj_b = _project(b.means, b.quats, b.scales, b.opacities)
+        loss = _warp_loss(proj_a, proj_b, a.opacities, image_a, image_b, sigmas=(0.0, 2.0, 4.0))
+        model.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        model.optimizer.step()
+    after = motion_error()
+    assert before > 5.0 and after < 1.0, (before, after)
+    with torch.no_grad():  # anchored: the seeds have not moved at their own time
+        torch.testing.assert_close(model.deform(0.0, "fine").means, canonical, atol=1e-6, rtol=0)
+
+
+def test_anchor_is_what_keeps_seeds_at_their_keyframe():
+    """With random (trained-looking) heads, anchored seeds sit at their canonical place at t = center."""
+    for anchored in (True, False):
+        model = _anchored_carpet_model(anchored)
+        with torch.no_grad():
+            for p in model.deformation.parameters():
+                p.add_(0.1 * torch.randn_like(p))
+            centers = torch.linspace(-0.5, 0.5, model.num_gaussians).unsqueeze(1)
+            model.pop_gaussian_buffer(TIME_CENTER)
+            model.register_gaussian_buffer(TIME_CENTER, centers)
+            at_own_time = model.deform(centers, "fine").means
+            elsewhere = model.deform(centers + 0.3, "fine").means
+        offset = (at_own_time - model.get_xyz).norm(dim=1).max()
+        assert (offset < 1e-6) == anchored, (anchored, float(offset))
+        assert (elsewhere - model.get_xyz).norm(dim=1).max() > 1e-3
+    assert np.isfinite(float(offset))
