@@ -47,6 +47,8 @@ class ReFlowParams:
     lambda_mc: float = param(1.0, "motion-consistency weight inside each flow matching term", check=_non_negative)
     cross_time_ratio: float = param(0.1, "cross-time rendering weight as a multiple of lambda_mc (paper: 0.1)",
                                     check=_non_negative)
+    lambda_ext: float = param(1.0, "weight of the external-flow L1 loss (component ext_flow, the paper's "
+                                   "'Ours (External Flow)' comparison), per pixel of flow", check=_non_negative)
     photo_ssim_weight: float = param(0.2, "weight of (1 - SSIM) in the photometric loss (0.8 L1 + 0.2 D-SSIM)",
                                      check=_fraction)
     # --- pairs and flow ---

@@ -9,6 +9,8 @@ Components (``--disable`` / ``--enable``, the paper's ablation switches):
     full_flow   full flow matching (L_mc + L_cr on the pair's rendered full flows)
     cam_flow    camera flow matching on static pixels
     occlusion   (off by default) forward-backward occlusion masks for full flow matching
+    ext_flow    (off by default) L1 between the rendered full flow and cached DIS optical flow: the
+                paper's "Ours (External Flow)" row is `--enable ext_flow --disable full_flow`
 
 Hook by hook (order of hooks.py):
     on_scene_loaded      pair sampler (errors before long work: a single frame, no pairs)
@@ -18,7 +20,7 @@ Hook by hook (order of hooks.py):
     select_batch         a pair (a, b) of nearby training frames (widening from the reference frame)
     extra_features       per view: 7 full-flow channels towards the other view (fine stage), 1 dynamic-ness channel
     loss_weights         coarse stage: the baseline loss skips motion-mask pixels (static scene first)
-    extra_losses         ff_mc, ff_cr, cf_mc, cf_cr (matching.py)
+    extra_losses         ff_mc, ff_cr, cf_mc, cf_cr (matching.py); ext (external.py, ext_flow)
     post_backward        coarse stage: dynamic Gaussians' gradients zeroed (frozen)
     protected_gaussians  dynamic Gaussians never pruned (protect_dynamic)
     on_iteration_end     warm-up unfreeze; flow-matching panels (flow_vis_every)
@@ -44,7 +46,8 @@ from baselines.fourdgs.gaussian_model import GaussianModel
 from baselines.fourdgs.plugins import Plugin
 
 from .evaluate import flow_metrics, summary_line, write_flow_metrics
-from .flow import camera_motion_pixels, flow_features
+from .external import ExternalFlowCache, external_flow_loss
+from .flow import camera_motion_pixels, flow_features, full_flow
 from .labels import aligned_depths, training_masks, vote_labels
 from .matching import DYNAMIC_KEY, FLOW_KEY, MatchingConfig, pair_losses
 from .pairs import PairSampler, curriculum_radius
@@ -71,8 +74,8 @@ def canonical_available() -> tuple[bool, str]:
 
 class ReFlowPlugin(Plugin):
     name = "reflow"
-    components = ("comp_init", "separation", "full_flow", "cam_flow", "occlusion")
-    default_disabled = ("occlusion",)
+    components = ("comp_init", "separation", "full_flow", "cam_flow", "occlusion", "ext_flow")
+    default_disabled = ("occlusion", "ext_flow")
     param_groups = {"ReFlowParams": ReFlowParams}
 
     def __init__(self, params: Mapping[str, Any] | None = None, enabled: frozenset[str] | None = None) -> None:
@@ -96,14 +99,18 @@ class ReFlowPlugin(Plugin):
         self._blur_cache: dict[tuple[str, float], Tensor] = {}
         self._camera_motion: dict[tuple[int, int], float] = {}
         self._last = None
+        self.external: ExternalFlowCache | None = None
 
     # ------------------------------------------------------------------ helpers
     @property
     def uses_pairs(self) -> bool:
-        return self.is_enabled("full_flow") or self.is_enabled("cam_flow")
+        return self.is_enabled("full_flow") or self.is_enabled("cam_flow") or self.is_enabled("ext_flow")
 
     def _use_full(self, ctx) -> bool:
         return self.is_enabled("full_flow") and ctx.stage == "fine" and len(ctx.views) == 2
+
+    def _use_ext(self, ctx) -> bool:
+        return self.is_enabled("ext_flow") and ctx.stage == "fine" and len(ctx.views) == 2
 
     def _use_cam(self, ctx) -> bool:
         if not self.is_enabled("cam_flow") or len(ctx.batch) != 2:
@@ -297,7 +304,7 @@ class ReFlowPlugin(Plugin):
         if len(ctx.views) != 2:
             return None
         features: dict[str, Tensor] = {}
-        if self._use_full(ctx):
+        if self._use_full(ctx) or self._use_ext(ctx):
             features[FLOW_KEY] = flow_features(ctx.views[view_index].projection, ctx.views[1 - view_index].projection)
         if self._use_cam(ctx):
             features[DYNAMIC_KEY] = self._dynamic(ctx).to(ctx.views[view_index].colors.dtype).unsqueeze(1)
@@ -319,18 +326,32 @@ class ReFlowPlugin(Plugin):
         return images[0], images[1]
 
     def extra_losses(self, ctx) -> dict[str, Tensor] | None:
-        use_full, use_cam = self._use_full(ctx), self._use_cam(ctx)
-        if len(ctx.views) != 2 or not (use_full or use_cam):
+        use_full, use_cam, use_ext = self._use_full(ctx), self._use_cam(ctx), self._use_ext(ctx)
+        if len(ctx.views) != 2 or not (use_full or use_cam or use_ext):
             self._last = None
             return None
         result = pair_losses(ctx.views, self.config, use_full, use_cam,
                              lambda k, sigma: self._blurred(ctx, k, sigma))
+        if use_ext:
+            result.losses["ext"] = self.p.lambda_ext * self._external_loss(ctx)
         ctx.metrics.update(result.metrics)
         dynamic = self._dynamic(ctx)
         if bool(dynamic.any()):
             ctx.metrics["dynamic_opacity"] = float(torch.sigmoid(ctx.model._opacity.detach()[dynamic]).mean())
         self._last = result
         return result.losses
+
+    def _external_loss(self, ctx) -> Tensor:
+        """Both directions' L1 to the cached DIS flow (reflow_plugin.external)."""
+        if self.external is None:
+            self.external = ExternalFlowCache(self._run_dir(ctx) / "external_flow")
+        terms = []
+        for k in range(2):
+            a, b = ctx.views[k], ctx.views[1 - k]
+            flow, valid = full_flow(a.extras[FLOW_KEY], a.alpha, self.p.flow_min_alpha)
+            flow_ext, confident = self.external.get(a.camera, b.camera)
+            terms.append(external_flow_loss(flow, valid, flow_ext, confident))
+        return torch.stack(terms).mean()
 
     def post_backward(self, ctx) -> None:
         if not self.is_enabled("separation"):

@@ -196,3 +196,39 @@ def test_short_run_writes_every_output(tiny_scene, tmp_path):
     assert {"reflow/ff_mc", "reflow/cf_mc"} <= losses, losses
     written = render_from_argv(["-m", str(out), "--skip_video"])  # render.py restores the plugin
     assert (written["test"] / "renders" / "00000.png").is_file()
+
+
+def test_external_flow_row_trains_and_caches_the_dis_flow(tiny_scene, tmp_path, monkeypatch):
+    out = tmp_path / "run"
+    trainer = build_trainer(_argv(tiny_scene, out, 2, 6, "--enable", "ext_flow", "--disable", "full_flow"))
+    result = trainer.train()
+    log = [json.loads(line) for line in (out / "train_log.jsonl").read_text().splitlines()]
+    losses = {k for r in log if r["kind"] == "iter" for k in r.get("losses", {})}
+    assert "reflow/ext" in losses and "reflow/ff_mc" not in losses, losses
+    cached = sorted((out / "reflow" / "external_flow").glob("*.npz"))
+    assert cached and result.final_iteration == 6
+    # a second cache over the same folder reads the files: DIS is never called again
+    import reflow_plugin.external as external
+
+    monkeypatch.setattr(external, "flow_pair", lambda *a, **k: pytest.fail("DIS recomputed"))
+    cams = {c.image_name: c for c in trainer.train_cameras}
+    name_a, name_b = cached[0].stem.split("__")
+    flow, ok = external.ExternalFlowCache(out / "reflow" / "external_flow").get(cams[name_a], cams[name_b])
+    assert flow.shape == (cams[name_a].height, cams[name_a].width, 2) and ok.dtype == torch.bool
+
+
+def test_external_flow_loss_is_l1_on_confident_valid_pixels():
+    from reflow_plugin.external import external_flow_loss
+
+    flow = torch.zeros(4, 5, 2, requires_grad=True)
+    target = torch.ones(4, 5, 2)
+    valid = torch.ones(4, 5, dtype=torch.bool)
+    confident = torch.zeros(4, 5, dtype=torch.bool)
+    confident[0, :2] = True
+    target[1:] = 100.0  # outside the confident pixels: must not count
+    loss = external_flow_loss(flow, valid, target, confident)
+    assert float(loss.detach()) == pytest.approx(1.0)
+    loss.backward()
+    assert flow.grad[1:].abs().sum() == 0 and flow.grad[0, :2].abs().sum() > 0
+    empty = external_flow_loss(flow, valid, target, torch.zeros_like(confident))
+    assert float(empty) == 0.0 and empty.requires_grad

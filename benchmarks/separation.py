@@ -1,0 +1,92 @@
+"""Cost of the separated deformation versus the share of dynamic Gaussians, in one run.
+
+    OMP_WAIT_POLICY=PASSIVE python benchmarks/separation.py [--gaussians 20000] [--repeats 9]
+
+Forward + backward of the deformation alone (synthetic config's HexPlane), median of interleaved
+repeats: 4DGS's `DeformNetwork` on every Gaussian, then `SeparatedDeformation` with 0%, 20%, 50%
+and 100% dynamic Gaussians, without and with keyframe anchoring (the anchored field is evaluated
+twice per dynamic Gaussian: at t - t_k and at 0). Prints a table; asserts nothing.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch  # noqa: E402
+
+import types  # noqa: E402
+
+from arguments.config import read_config_chain  # noqa: E402
+from baselines.fourdgs.deformation import DeformNetwork  # noqa: E402
+from baselines.fourdgs.state import GaussianState  # noqa: E402
+from reflow_plugin.separation import TIME_CENTER, SeparatedDeformation  # noqa: E402
+
+CONFIG = Path(__file__).resolve().parents[1] / "arguments" / "synthetic" / "default.py"
+
+
+def hidden_params() -> types.SimpleNamespace:
+    """The config's ModelHiddenParams (missing fields take 4DGS's defaults in DeformNetwork)."""
+    values: dict = {}
+    for _, raw in read_config_chain(CONFIG):
+        values.update(raw.get("ModelHiddenParams", {}))
+    return types.SimpleNamespace(**values)
+
+
+def time_call(module, state: GaussianState, times, buffers) -> float:
+    start = time.perf_counter()
+    out = module(state, times, buffers)
+    (out.means.sum() + out.log_scales.sum() + out.rotations.sum()).backward()
+    return time.perf_counter() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--gaussians", type=int, default=20_000)
+    parser.add_argument("--repeats", type=int, default=9)
+    args = parser.parse_args()
+    torch.manual_seed(0)
+    n = args.gaussians
+    hidden = hidden_params()
+    baseline = DeformNetwork(hidden)
+    separated = SeparatedDeformation(hidden, zero_init=False)
+    for module in (baseline, separated):
+        module.set_aabb(torch.ones(3), -torch.ones(3))
+
+    def make_state() -> GaussianState:
+        return GaussianState(torch.rand(n, 3) * 2 - 1, torch.randn(n, 3).requires_grad_(), torch.randn(n, 4),
+                             torch.randn(n, 1), torch.randn(n, 16, 3))
+
+    times = torch.full((n, 1), 0.5)
+    centers = torch.rand(n, 1)
+    cases = {"4DGS DeformNetwork (all)": (baseline, None)}
+    for share in (0.0, 0.2, 0.5, 1.0):
+        table = torch.zeros(n, dtype=torch.bool)
+        table[: int(share * n)] = True
+        cases[f"separated, {share:.0%} dynamic"] = (separated, {"deformation_table": table})
+        if share > 0:
+            cases[f"separated, {share:.0%} dynamic, anchored keyframes"] = (
+                separated, {"deformation_table": table, TIME_CENTER: centers})
+    samples = {name: [] for name in cases}
+    for _ in range(args.repeats):
+        for name, (module, buffers) in cases.items():
+            module.zero_grad(set_to_none=True)
+            samples[name].append(time_call(module, make_state(), times, buffers))
+    base = statistics.median(samples["4DGS DeformNetwork (all)"])
+    print(f"# {n} Gaussians, synthetic config HexPlane, fwd+bwd, median of {args.repeats}; "
+          f"torch {torch.__version__}, {torch.get_num_threads()} threads, load average {os.getloadavg()[0]:.2f}")
+    print("| case | ms | vs 4DGS |")
+    print("|---|---:|---:|")
+    for name, values in samples.items():
+        median = statistics.median(values)
+        print(f"| {name} | {1000 * median:.1f} | {median / base:.2f}x |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,269 @@
+"""The paper's ablation table (plus the external-flow row), as ordinary train.py runs.
+
+    python -m reflow_plugin.ablate -s data/synthetic/skating -o output/ablation [--rows ...]
+                                   [--jobs N] [--executor local|slurm] [-- extra train.py flags]
+    python -m reflow_plugin.ablate -s suite:synthetic -o output/ablation      # balloon ... umbrella
+
+Rows (paper Table 4, ids as in the paper; `--rows` takes the names):
+
+    baseline        4DGS
+    fullfm_only     #1  4DGS + full flow matching (no canonical init, no separation)
+    wo_align        #2  canonical space without alignment (part 2's `--canonical_wo_align`)
+    comp_init       #3  complete canonical space only
+    sep             #4  + static/dynamic separation
+    sep_fullfm      #5  + full flow matching
+    ours                + camera flow matching (everything)
+    external_flow       "Ours (External Flow)": full flow matching replaced by L1 to DIS flow
+
+Each (scene, row) trains in `OUT/<scene>/<row>` with `train.py` (so every run is an ordinary run,
+reproducible from its `config.json`). A run counts as done when `OUT/<scene>/<row>/ablate_done.json`
+exists (written after train.py and the flow evaluation succeed); a folder without it is a torn run
+and is cleared and redone, so a killed sweep resumes where it stopped. Runs go to submitit: its
+LocalExecutor (processes on this machine, at most `--jobs` at a time) or its SlurmExecutor (one
+job per run; `--slurm_partition`, `--timeout_min`). Rows that need part 2 (comp_init) say in the
+table when the canonical space was unavailable. Outputs: `OUT/ablation.md` (the paper's layout:
+one block of PSNR / SSIM / LPIPS per scene and the mean, plus flow EPE and PSNR-dynamic),
+`OUT/ablation.json`, `OUT/ablation.csv`.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SUITES = {"synthetic": ("balloon", "playground", "skating", "truck", "umbrella")}
+DONE_FILE = "ablate_done.json"
+
+ROWS: dict[str, tuple[str, list[str]]] = {
+    "baseline": ("Baseline (4DGS)", []),
+    "fullfm_only": ("#1 FullFM only", ["--plugin", "reflow", "--disable", "comp_init,separation,cam_flow"]),
+    "wo_align": ("#2 w/o align", ["--plugin", "reflow", "--disable", "separation,full_flow,cam_flow",
+                                  "--canonical_wo_align"]),
+    "comp_init": ("#3 CompInit", ["--plugin", "reflow", "--disable", "separation,full_flow,cam_flow"]),
+    "sep": ("#4 + Sep", ["--plugin", "reflow", "--disable", "full_flow,cam_flow"]),
+    "sep_fullfm": ("#5 + FullFM", ["--plugin", "reflow", "--disable", "cam_flow"]),
+    "ours": ("Ours", ["--plugin", "reflow"]),
+    "external_flow": ("Ours (External Flow)", ["--plugin", "reflow", "--enable", "ext_flow", "--disable", "full_flow"]),
+}
+METRICS = ("PSNR", "SSIM", "LPIPS-vgg", "PSNR-dynamic", "EPE-test")
+
+
+class AblationError(ValueError):
+    """Bad runner input (unknown row or suite, missing scene)."""
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    scene: str
+    source: Path
+    row: str
+    run_dir: Path
+    command: tuple[str, ...]
+
+
+def resolve_scenes(source: str) -> list[tuple[str, Path]]:
+    """`suite:NAME` -> the suite's scenes under data/synthetic (generated when missing); else one folder."""
+    if source.startswith("suite:"):
+        name = source.split(":", 1)[1]
+        if name not in SUITES:
+            raise AblationError(f"unknown suite {name!r}; known: {sorted(SUITES)}")
+        return [(scene, REPO_ROOT / "data" / "synthetic" / scene) for scene in SUITES[name]]
+    path = Path(source)
+    if not path.is_dir():
+        raise AblationError(f"scene folder {path} does not exist")
+    return [(path.name, path)]
+
+
+def plan(scenes: list[tuple[str, Path]], rows: list[str], out: Path, extra: list[str]) -> list[RunSpec]:
+    """Every (scene, row) run with its train.py command."""
+    unknown = [r for r in rows if r not in ROWS]
+    if unknown:
+        raise AblationError(f"unknown row(s) {unknown}; known: {list(ROWS)}")
+    specs = []
+    for scene, source in scenes:
+        for row in rows:
+            run_dir = out / scene / row
+            command = (sys.executable, str(REPO_ROOT / "train.py"), "-s", str(source), "-m", str(run_dir), "--quiet",
+                       *ROWS[row][1], *extra)
+            specs.append(RunSpec(scene, source, row, run_dir, command))
+    return specs
+
+
+def is_done(spec: RunSpec) -> bool:
+    return (spec.run_dir / DONE_FILE).is_file()
+
+
+def execute(spec: RunSpec) -> dict:
+    """Train one run (its folder cleared first: a torn run is redone), measure its flow, mark it done."""
+    if spec.run_dir.exists():
+        shutil.rmtree(spec.run_dir)
+    spec.run_dir.mkdir(parents=True)
+    if not (spec.source / "poses_bounds.npy").is_file() and spec.source.parent.name == "synthetic":
+        subprocess.run([sys.executable, "-m", "baselines.synthetic", "--scene", spec.scene, "--out", str(spec.source),
+                        "--quiet"], cwd=REPO_ROOT, check=True)
+    start = time.time()
+    with open(spec.run_dir / "ablate_train.log", "w") as log:
+        result = subprocess.run(list(spec.command), cwd=REPO_ROOT, stdout=log, stderr=subprocess.STDOUT)
+    if result.returncode != 0:
+        raise RuntimeError(f"{spec.scene}/{spec.row}: train.py exited with {result.returncode} "
+                           f"(see {spec.run_dir / 'ablate_train.log'})")
+    subprocess.run([sys.executable, "-m", "reflow_plugin.evaluate", "-m", str(spec.run_dir)], cwd=REPO_ROOT,
+                   check=True, stdout=subprocess.DEVNULL)
+    info = {"scene": spec.scene, "row": spec.row, "command": list(spec.command), "wall_seconds": time.time() - start}
+    (spec.run_dir / DONE_FILE).write_text(json.dumps(info, indent=1))
+    return info
+
+
+def make_executor(kind: str, folder: Path, timeout_min: int, partition: str | None):
+    """A submitit executor (imported here: only the runner needs it)."""
+    import submitit
+
+    if kind == "local":
+        executor = submitit.LocalExecutor(folder=str(folder))
+        executor.update_parameters(timeout_min=timeout_min)
+    elif kind == "slurm":
+        executor = submitit.SlurmExecutor(folder=str(folder))
+        executor.update_parameters(time=timeout_min, **({"partition": partition} if partition else {}))
+    else:
+        raise AblationError(f"unknown executor {kind!r}; use local or slurm")
+    return executor
+
+
+def run_all(specs: list[RunSpec], executor, jobs: int, poll_seconds: float = 2.0) -> list[str]:
+    """Submit the runs that are not done, at most `jobs` in flight; returns the failures' messages."""
+    pending = [s for s in specs if not is_done(s)]
+    in_flight: list[tuple[RunSpec, object]] = []
+    failures: list[str] = []
+    while pending or in_flight:
+        while pending and len(in_flight) < max(1, jobs):
+            spec = pending.pop(0)
+            print(f"[ablate] start {spec.scene}/{spec.row}", flush=True)
+            in_flight.append((spec, executor.submit(execute, spec)))
+        still = []
+        for spec, job in in_flight:
+            if not job.done():
+                still.append((spec, job))
+                continue
+            try:
+                job.result()
+                print(f"[ablate] done  {spec.scene}/{spec.row}", flush=True)
+            except Exception as exc:  # a failed run is reported, the sweep goes on
+                failures.append(f"{spec.scene}/{spec.row}: {exc}")
+        if len(still) == len(in_flight) and still:
+            time.sleep(poll_seconds)
+        in_flight = still
+    return failures
+
+
+def collect(specs: list[RunSpec]) -> dict[str, dict[str, dict]]:
+    """{scene: {row: figures}} of the finished runs."""
+    table: dict[str, dict[str, dict]] = {}
+    for spec in specs:
+        if not is_done(spec):
+            continue
+        results = json.loads((spec.run_dir / "results.json").read_text())
+        key = max((k for k in results if k.startswith("ours_")), key=lambda k: int(k.split("_")[1]))
+        metrics = results[key]
+        flow_path = spec.run_dir / "flow_metrics.json"
+        flow = json.loads(flow_path.read_text()).get(key, {}) if flow_path.is_file() else {}
+        row = {m: metrics.get(m) for m in ("PSNR", "SSIM", "LPIPS-vgg", "PSNR-dynamic")}
+        row["EPE-test"] = flow["test"]["epe"] if flow.get("available") else None
+        row["LPIPS_unavailable"] = metrics.get("LPIPS_unavailable")
+        row["comp_init"] = results.get("reflow", {}).get("comp_init")
+        table.setdefault(spec.scene, {})[spec.row] = row
+    return table
+
+
+def _cell(value, digits: int) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def markdown(table: dict[str, dict[str, dict]], rows: list[str]) -> str:
+    """The paper's layout: one row per ablation row; per scene PSNR / SSIM / LPIPS, then the mean."""
+    scenes = list(table)
+    header = ["Method", *[f"{s} PSNR / SSIM / LPIPS" for s in scenes], "Mean PSNR / SSIM / LPIPS",
+              "Mean PSNR-dynamic", "Mean EPE-test"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    notes = set()
+    for row in rows:
+        cells, values = [ROWS[row][0]], []
+        for scene in scenes:
+            figures = table[scene].get(row)
+            if figures is None:
+                cells.append("not run")
+                continue
+            values.append(figures)
+            cells.append(" / ".join((_cell(figures["PSNR"], 2), _cell(figures["SSIM"], 3), _cell(figures["LPIPS-vgg"], 3))))
+            if figures.get("LPIPS_unavailable"):
+                notes.add("LPIPS: " + figures["LPIPS_unavailable"])
+            if figures.get("comp_init") and row in ("wo_align", "comp_init", "sep", "sep_fullfm", "ours", "external_flow"):
+                notes.add(f"{ROWS[row][0]}: comp_init {figures['comp_init']}")
+
+        def mean(metric: str):
+            got = [v[metric] for v in values if v.get(metric) is not None]
+            return float(np.mean(got)) if got and len(got) == len(values) else None
+
+        cells.append(" / ".join((_cell(mean("PSNR"), 2), _cell(mean("SSIM"), 3), _cell(mean("LPIPS-vgg"), 3))))
+        cells += [_cell(mean("PSNR-dynamic"), 2), _cell(mean("EPE-test"), 3)]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines + [""] + [f"- {n}" for n in sorted(notes)])
+
+
+def write_outputs(table: dict[str, dict[str, dict]], rows: list[str], out: Path) -> str:
+    text = markdown(table, rows)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "ablation.md").write_text(text + "\n")
+    (out / "ablation.json").write_text(json.dumps(table, indent=1))
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    writer.writerow(["scene", "row", *METRICS])
+    for scene, by_row in table.items():
+        for row, figures in by_row.items():
+            writer.writerow([scene, row, *[figures.get(m) for m in METRICS]])
+    (out / "ablation.csv").write_text(buffer.getvalue())
+    return text
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra: list[str] = []
+    if "--" in argv:
+        extra, argv = argv[argv.index("--") + 1:], argv[:argv.index("--")]
+    parser = argparse.ArgumentParser(prog="python -m reflow_plugin.ablate", description=__doc__.splitlines()[0])
+    parser.add_argument("-s", "--source", required=True, help="a scene folder or suite:synthetic")
+    parser.add_argument("-o", "--out", type=Path, required=True)
+    parser.add_argument("--rows", default=",".join(ROWS), help=f"comma-separated, of {list(ROWS)}")
+    parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument("--executor", default="local", choices=("local", "slurm"))
+    parser.add_argument("--timeout_min", type=int, default=240)
+    parser.add_argument("--slurm_partition")
+    args = parser.parse_args(argv)
+    try:
+        rows = [r for r in args.rows.split(",") if r]
+        specs = plan(resolve_scenes(args.source), rows, args.out, extra)
+        executor = make_executor(args.executor, args.out / "_submitit", args.timeout_min, args.slurm_partition)
+    except AblationError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    skipped = sum(is_done(s) for s in specs)
+    if skipped:
+        print(f"[ablate] {skipped} of {len(specs)} runs already done (kept)")
+    failures = run_all(specs, executor, args.jobs)
+    print(write_outputs(collect(specs), rows, args.out))
+    for failure in failures:
+        print(f"error: {failure}", file=sys.stderr)
+    return 1 if failures else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

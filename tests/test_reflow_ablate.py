@@ -1,0 +1,98 @@
+"""The ablation runner: planning, resume after a kill, the table, and submitit's local executor end to end."""
+from __future__ import annotations
+
+import json
+import types
+from pathlib import Path
+
+import pytest
+
+from reflow_plugin import ablate
+from tests.test_trainer import FAST
+
+
+def _fake_done_run(spec: ablate.RunSpec, psnr: float, epe: float | None = 0.5) -> None:
+    spec.run_dir.mkdir(parents=True, exist_ok=True)
+    results = {"ours_100": {"PSNR": psnr - 1, "SSIM": 0.5}, "ours_200": {
+        "PSNR": psnr, "SSIM": 0.9, "LPIPS-vgg": None, "PSNR-dynamic": psnr - 5,
+        "LPIPS_unavailable": "no lpips package"}}
+    (spec.run_dir / "results.json").write_text(json.dumps(results))
+    flow = {"ours_200": {"available": epe is not None, "test": {"epe": epe}}}
+    (spec.run_dir / "flow_metrics.json").write_text(json.dumps(flow))
+    (spec.run_dir / ablate.DONE_FILE).write_text("{}")
+
+
+def test_plan_rejects_unknown_rows_and_suites(tmp_path):
+    with pytest.raises(ablate.AblationError, match="unknown row"):
+        ablate.plan([("s", tmp_path)], ["baseline", "nope"], tmp_path / "out", [])
+    with pytest.raises(ablate.AblationError, match="unknown suite"):
+        ablate.resolve_scenes("suite:nope")
+    with pytest.raises(ablate.AblationError, match="does not exist"):
+        ablate.resolve_scenes(str(tmp_path / "missing"))
+    specs = ablate.plan([("s", tmp_path)], ["baseline", "ours"], tmp_path / "out", ["--iterations", "5"])
+    assert "--plugin" not in specs[0].command and specs[1].command[-2:] == ("--iterations", "5")
+    assert specs[1].run_dir == tmp_path / "out" / "s" / "ours"
+
+
+class _RecordingExecutor:
+    """Runs nothing: records what would be submitted and marks it done."""
+
+    def __init__(self) -> None:
+        self.submitted: list[str] = []
+
+    def submit(self, fn, spec):
+        self.submitted.append(spec.row)
+        _fake_done_run(spec, 20.0)
+        return types.SimpleNamespace(done=lambda: True, result=lambda: None)
+
+
+def test_a_killed_sweep_resumes_and_redoes_only_torn_runs(tmp_path):
+    specs = ablate.plan([("s", tmp_path)], ["baseline", "sep", "ours"], tmp_path / "out", [])
+    _fake_done_run(specs[0], 25.0)  # finished before the kill
+    specs[1].run_dir.mkdir(parents=True)  # torn: killed mid-training, no done marker
+    (specs[1].run_dir / "results.json").write_text("{}")
+    executor = _RecordingExecutor()
+    assert ablate.run_all(specs, executor, jobs=2) == []
+    assert executor.submitted == ["sep", "ours"]
+    again = _RecordingExecutor()
+    ablate.run_all(specs, again, jobs=2)
+    assert again.submitted == []  # nothing redone
+
+
+def test_execute_clears_a_torn_folder(tmp_path, monkeypatch):
+    spec = ablate.plan([("s", tmp_path)], ["baseline"], tmp_path / "out", [])[0]
+    spec.run_dir.mkdir(parents=True)
+    (spec.run_dir / "stale.txt").write_text("from the killed run")
+    calls = []
+    monkeypatch.setattr(ablate.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or types.SimpleNamespace(returncode=0))
+    ablate.execute(spec)
+    assert not (spec.run_dir / "stale.txt").exists() and ablate.is_done(spec) and len(calls) == 2
+
+
+def test_table_layout_means_and_notes(tmp_path):
+    scenes = [("a", tmp_path), ("b", tmp_path)]
+    specs = ablate.plan(scenes, ["baseline", "ours"], tmp_path / "out", [])
+    for spec, psnr in zip(specs, (20.0, 22.0, 24.0, 26.0)):  # a/baseline, a/ours, b/baseline, b/ours
+        _fake_done_run(spec, psnr)
+    text = ablate.write_outputs(ablate.collect(specs), ["baseline", "ours"], tmp_path / "out")
+    lines = text.splitlines()
+    assert lines[0].startswith("| Method | a PSNR / SSIM / LPIPS | b PSNR / SSIM / LPIPS | Mean")
+    assert lines[2] == "| Baseline (4DGS) | 20.00 / 0.900 / - | 24.00 / 0.900 / - | 22.00 / 0.900 / - | 17.00 | 0.500 |"
+    assert lines[3].startswith("| Ours | 22.00 / 0.900 / - | 26.00 / 0.900 / - | 24.00")
+    assert "- LPIPS: no lpips package" in lines
+    csv_rows = (tmp_path / "out" / "ablation.csv").read_text().splitlines()
+    assert csv_rows[0] == "scene,row,PSNR,SSIM,LPIPS-vgg,PSNR-dynamic,EPE-test" and len(csv_rows) == 5
+    assert json.loads((tmp_path / "out" / "ablation.json").read_text())["b"]["ours"]["PSNR"] == 26.0
+
+
+def test_local_executor_end_to_end_two_rows(tiny_scene, tmp_path):
+    out = tmp_path / "ablation"
+    extra = ["--configs", str(Path(ablate.REPO_ROOT) / "arguments/synthetic/default.py"), "--coarse_iterations", "2",
+             "--iterations", "6", *FAST, "--flow_vis_every", "0"]
+    # --flow_vis_every is a ReFlow flag: the baseline row would reject it, so run two ReFlow rows
+    code = ablate.main(["-s", str(tiny_scene), "-o", str(out), "--rows", "ours,external_flow", "--jobs", "2", "--", *extra])
+    assert code == 0
+    table = json.loads((out / "ablation.json").read_text())[tiny_scene.name]
+    assert set(table) == {"ours", "external_flow"} and all(r["PSNR"] > 5 for r in table.values())
+    assert (out / tiny_scene.name / "ours" / ablate.DONE_FILE).is_file()
+    assert "| Ours (External Flow) |" in (out / "ablation.md").read_text()
