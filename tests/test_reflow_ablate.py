@@ -96,3 +96,36 @@ def test_local_executor_end_to_end_two_rows(tiny_scene, tmp_path):
     assert set(table) == {"ours", "external_flow"} and all(r["PSNR"] > 5 for r in table.values())
     assert (out / tiny_scene.name / "ours" / ablate.DONE_FILE).is_file()
     assert "| Ours (External Flow) |" in (out / "ablation.md").read_text()
+    from reflow_plugin import report  # the runs' own logs carry the timing the report needs
+
+    assert report.main([str(out)]) == 0
+    cost_lines = (out / "cost.md").read_text().splitlines()
+    assert any(line.startswith("| ours | 1 |") and "| - |" not in line for line in cost_lines), cost_lines
+
+
+def _fake_logged_run(run: Path, points: list[tuple[float, float]], rss: float, ms: float, timed: bool = True) -> None:
+    run.mkdir(parents=True)
+    events = [{"kind": "test", "iteration": i, "test_psnr": p, **({"train_seconds": t, "train_cpu_seconds": 2 * t}
+                                                                    if timed else {})}
+              for i, (t, p) in enumerate(points, 1)]
+    events.append({"kind": "train_end", "train_seconds": points[-1][0], "train_cpu_seconds": 2 * points[-1][0],
+                   "peak_rss_mib": rss})
+    (run / "train_log.jsonl").write_text("\n".join(json.dumps(e) for e in events))
+    (run / "results.json").write_text(json.dumps({"ours_9": {"PSNR": points[-1][1], "render_ms_per_view": ms}}))
+    cloud = run / "point_cloud" / "iteration_9"
+    cloud.mkdir(parents=True)
+    (cloud / "point_cloud.ply").write_bytes(b"x" * 2**20)
+
+
+def test_report_cost_table_and_plot(tmp_path, capsys):
+    from reflow_plugin import report
+
+    _fake_logged_run(tmp_path / "a" / "baseline", [(10.0, 20.0), (30.0, 24.0)], rss=500, ms=10.0)
+    _fake_logged_run(tmp_path / "b" / "baseline", [(20.0, 22.0), (50.0, 26.0)], rss=700, ms=20.0)
+    _fake_logged_run(tmp_path / "a" / "ours", [(15.0, 21.0), (45.0, 27.0)], rss=600, ms=10.0, timed=False)
+    assert report.main([str(tmp_path)]) == 0
+    table = (tmp_path / "cost.md").read_text().splitlines()
+    assert table[2] == "| baseline | 2 | 40 | 80 | 600 | 75.0 | 1.00 | 25.00 |"  # means over scenes a and b
+    assert (tmp_path / "accuracy_vs_time.png").stat().st_size > 1000
+    assert "a/ours has no timed test events" in capsys.readouterr().err
+    assert report.main([str(tmp_path / "empty")]) == 2

@@ -13,6 +13,8 @@ on a stage's last iteration; files are written atomically.
 from __future__ import annotations
 
 import logging
+import resource
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -66,6 +68,12 @@ def resolve_device(name: str) -> torch.device:
     return device
 
 
+def peak_rss_mib() -> float:
+    """Peak resident memory of this process in MiB (ru_maxrss: KiB on Linux, bytes on macOS)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0
+
+
 class Trainer:
     """Runs the coarse and fine stages on a loaded scene with the given plugins.
 
@@ -98,6 +106,8 @@ class Trainer:
         self.run_log = RunLog(model_path / "train_log.jsonl", quiet=self.run.quiet)
         self._densify_grads: list[Tensor | None] | None = None
         self.timer = StageTimer()
+        self.train_seconds = 0.0  # wall / CPU seconds spent in training steps (this process)
+        self.train_cpu_seconds = 0.0
 
     # ------------------------------------------------------------------ set-up
     def build(self) -> None:
@@ -138,7 +148,9 @@ class Trainer:
             model_path=self.ctx.model_path, final_iteration=self.ctx.iteration, num_gaussians=self.ctx.model.num_gaussians,
             wall_seconds=time.perf_counter() - start, timings=self.timer.means(),
         )
-        self.run_log.event("train_end", wall_seconds=result.wall_seconds, timings_ms=result.timings)
+        self.run_log.event("train_end", wall_seconds=result.wall_seconds, timings_ms=result.timings,
+                           train_seconds=self.train_seconds, train_cpu_seconds=self.train_cpu_seconds,
+                           peak_rss_mib=peak_rss_mib())
         self.run_log.close()
         return result
 
@@ -154,10 +166,15 @@ class Trainer:
         bar = self.run_log.progress(total, first - 1, desc=stage)
         for iteration in range(first, total + 1):
             ctx.iteration = iteration
+            wall, cpu = time.perf_counter(), time.process_time()
             self.train_step()
+            # training time alone (evaluation and saving excluded): the accuracy-versus-time curve
+            self.train_seconds += time.perf_counter() - wall
+            self.train_cpu_seconds += time.process_time() - cpu
             bar.update(ctx)
             if iteration in self.run.test_iterations or (stage == "fine" and iteration == total):
-                self.run_log.event("test", stage=stage, iteration=iteration, **self.quick_eval())
+                self.run_log.event("test", stage=stage, iteration=iteration, train_seconds=self.train_seconds,
+                                   train_cpu_seconds=self.train_cpu_seconds, **self.quick_eval())
             if iteration in self.run.save_iterations or iteration == total:
                 self.save_point_cloud()
             if iteration in self.run.checkpoint_iterations:

@@ -1,0 +1,133 @@
+"""What accuracy costs in time: PSNR-versus-training-time curves and the paper-style cost table.
+
+    python -m reflow_plugin.report OUT [--plot OUT/accuracy_vs_time.png]
+
+OUT is an ablation folder (`OUT/<scene>/<row>/`, from `python -m reflow_plugin.ablate`) or any
+folder of runs. Per run it reads `train_log.jsonl` (every "test" event carries the held-out PSNR
+and the wall / CPU seconds spent in training steps so far, evaluation and saving excluded; the
+"train_end" event the totals and the peak RSS), `results.json` (final metrics, render ms per view)
+and the size of the final `point_cloud/iteration_N` folder. Writes the plot (one panel per scene,
+one curve per row) and `OUT/cost.md`, the cost table averaged over scenes: training time (wall and
+CPU), peak memory, render FPS, model size on disk, final PSNR. Runs from older code without
+timing fields in their "test" events are listed as missing, not guessed.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+COST_COLUMNS = ("train_s", "train_cpu_s", "peak_rss_mib", "render_fps", "model_mib", "PSNR")
+
+
+def find_runs(out: Path) -> dict[tuple[str, str], Path]:
+    """{(scene, row): run folder} for every folder under OUT holding a finished run."""
+    runs = {}
+    for log in sorted(out.glob("**/train_log.jsonl")):
+        run = log.parent
+        if not (run / "results.json").is_file():
+            continue
+        rel = run.relative_to(out).parts
+        scene, row = (rel[0], rel[-1]) if len(rel) >= 2 else ("-", rel[0] if rel else run.name)
+        runs[(scene, row)] = run
+    return runs
+
+
+def curve(run: Path) -> list[tuple[float, float, float]]:
+    """[(train wall s, train CPU s, test PSNR)] of the run's "test" events that carry timing."""
+    points = []
+    for line in (run / "train_log.jsonl").read_text().splitlines():
+        record = json.loads(line)
+        if record.get("kind") == "test" and "train_seconds" in record and record.get("test_psnr") is not None:
+            points.append((record["train_seconds"], record["train_cpu_seconds"], record["test_psnr"]))
+    return points
+
+
+def cost(run: Path) -> dict[str, float | None]:
+    """The cost-table figures of one run (None where the run does not have them)."""
+    end = [json.loads(line) for line in (run / "train_log.jsonl").read_text().splitlines()]
+    end = [r for r in end if r.get("kind") == "train_end"]
+    results = json.loads((run / "results.json").read_text())
+    keys = [k for k in results if k.startswith("ours_")]
+    final = results[max(keys, key=lambda k: int(k.split("_")[1]))] if keys else {}
+    clouds = sorted((run / "point_cloud").glob("iteration_*"), key=lambda p: int(p.name.split("_")[1]))
+    size = sum(f.stat().st_size for f in clouds[-1].iterdir() if f.is_file()) / 2**20 if clouds else None
+    last = end[-1] if end else {}
+    ms = final.get("render_ms_per_view")
+    return {"train_s": last.get("train_seconds"), "train_cpu_s": last.get("train_cpu_seconds"),
+            "peak_rss_mib": last.get("peak_rss_mib"), "render_fps": 1000.0 / ms if ms else None,
+            "model_mib": size, "PSNR": final.get("PSNR")}
+
+
+def cost_table(runs: dict[tuple[str, str], Path]) -> str:
+    """Markdown: one line per row, each figure averaged over the scenes that have it."""
+    by_row: dict[str, list[dict]] = {}
+    for (_, row), run in runs.items():
+        by_row.setdefault(row, []).append(cost(run))
+    fmt = {"train_s": "{:.0f}", "train_cpu_s": "{:.0f}", "peak_rss_mib": "{:.0f}", "render_fps": "{:.1f}",
+           "model_mib": "{:.2f}", "PSNR": "{:.2f}"}
+    lines = ["| row | scenes | training s (wall) | training s (CPU) | peak RSS MiB | render FPS | model MiB | PSNR |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for row, figures in by_row.items():
+        cells = []
+        for column in COST_COLUMNS:
+            values = [f[column] for f in figures if f[column] is not None]
+            cells.append(fmt[column].format(float(np.mean(values))) if values else "-")
+        lines.append(f"| {row} | {len(figures)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def plot(runs: dict[tuple[str, str], Path], path: Path) -> list[str]:
+    """PSNR against training wall time, one panel per scene; returns the runs without timing."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = sorted({scene for scene, _ in runs})
+    fig, axes = plt.subplots(1, len(scenes), figsize=(4.2 * len(scenes), 3.4), squeeze=False)
+    missing = []
+    for ax, scene in zip(axes[0], scenes):
+        for (s, row), run in sorted(runs.items()):
+            if s != scene:
+                continue
+            points = curve(run)
+            if not points:
+                missing.append(f"{scene}/{row}")
+                continue
+            ax.plot([p[0] for p in points], [p[2] for p in points], marker="o", label=row)
+        ax.set_title(scene)
+        ax.set_xlabel("training time (s, wall)")
+        ax.set_ylabel("test PSNR (dB)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return missing
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m reflow_plugin.report", description=__doc__.splitlines()[0])
+    parser.add_argument("out", type=Path)
+    parser.add_argument("--plot", type=Path)
+    args = parser.parse_args(argv)
+    runs = find_runs(args.out)
+    if not runs:
+        print(f"error: no finished run (train_log.jsonl + results.json) under {args.out}", file=sys.stderr)
+        return 2
+    missing = plot(runs, args.plot or args.out / "accuracy_vs_time.png")
+    table = cost_table(runs)
+    (args.out / "cost.md").write_text(table + "\n")
+    print(table)
+    for name in missing:
+        print(f"warning: {name} has no timed test events (trained before they were recorded)", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
