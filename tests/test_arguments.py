@@ -36,7 +36,8 @@ FOURDGS_FIELDS = {
                         "add_point",
 }
 OURS = {ModelParams: {"dataset_type"}, PipelineParams: {"backend", "device"},
-        OptimizationParams: {"seed", "densify_max_gaussians", "prune_min_gaussians"},
+        OptimizationParams: {"seed", "densify_max_gaussians", "prune_min_gaussians",
+                             "densify_grad_from"},
         ModelHiddenParams: set()}
 
 

@@ -2,11 +2,13 @@
 from __future__ import annotations
 
 import logging
+from importlib.metadata import entry_points
 from pathlib import Path
 
 import pytest
 
 from arguments import ConfigError, parse_train_args
+from baselines.fourdgs.plugins import load_plugin_class
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -232,6 +234,7 @@ def test_base_cycle(tmp_path, self_cycle):
 # --- shipped config files ---------------------------------------------------------------------
 
 SHIPPED = sorted((REPO / "arguments").glob("*/*.py"))
+PLUGINS = {ep.name for ep in entry_points(group="fourdgs.plugins")}
 
 
 def test_shipped_configs_exist():
@@ -242,8 +245,11 @@ def test_shipped_configs_exist():
 
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: f"{p.parent.name}/{p.name}")
 def test_shipped_config_loads_without_warnings(path, caplog):
+    # A plugin's config (arguments/<family>/<plugin>.py) carries the plugin's group: parse it
+    # with that group, as train.py does after --plugin NAME.
+    extra = load_plugin_class(path.stem).param_groups if path.stem in PLUGINS else None
     with caplog.at_level(logging.WARNING, logger="arguments"):
-        args = parse_train_args(["--configs", str(path)])
+        args = parse_train_args(["--configs", str(path)], extra_groups=extra)
     assert not caplog.records, [r.getMessage() for r in caplog.records]
     opt = args.opt
     assert 0 < opt.coarse_iterations < opt.iterations
