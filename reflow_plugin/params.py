@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from arguments import param
 
 LABEL_SOURCES = ("auto", "masks", "estimate", "none")
+UPGRADE_LABELS = ("auto", "motion", "checkpoint")
 STATIC_DECODERS = ("none", "triplane")
 
 
@@ -113,6 +114,14 @@ class ReFlowParams:
                                          "sit exactly where they were seeded at their own time")
     time_scale_lr: float = param(0.005, "learning rate of the log temporal window widths (keyframe seeds)",
                                  check=_non_negative)
+    # --- upgrading a 4DGS checkpoint (--start_checkpoint OLD/point_cloud/iteration_N) ---
+    upgrade_labels: str = param("auto", "labels of a loaded point_cloud folder: motion (from the deformation "
+                                        "magnitude over the training times, static Gaussians baked at their "
+                                        "time average), checkpoint (its deformation_table.pth), auto (checkpoint "
+                                        "when a ReFlow run wrote it, else motion)", choices=UPGRADE_LABELS)
+    upgrade_motion_threshold: float = param(0.005, "a loaded 4DGS Gaussian is dynamic when its centre moves more "
+                                                   "than this fraction of the scene extent from its time average",
+                                            check=_non_negative)
     # --- diagnostics ---
     flow_vis_every: int = param(500, "write a flow-matching panel [I_a | I_b warped | I_b | error | flow] "
                                      "every this many fine iterations (0 = never)", check=_non_negative)

@@ -24,6 +24,7 @@ Hook by hook (order of hooks.py):
     post_backward        coarse stage: dynamic Gaussians' gradients zeroed (frozen)
     protected_gaussians  dynamic Gaussians never pruned (protect_dynamic)
     on_iteration_end     warm-up unfreeze; flow-matching panels (flow_vis_every)
+    on_load              a 4DGS folder (--start_checkpoint): labels from deformation magnitude (upgrade.py)
     on_stage_end         fine stage: flow metrics against ground truth when the dataset has it
 
 Skips (only what the scene calls for): camera flow on pairs whose cameras barely move; the
@@ -54,6 +55,7 @@ from .pairs import PairSampler, curriculum_radius
 from .params import ReFlowParams
 from .seeding import BACKGROUND_FACTOR, keyframes, reference_frame, ring_depth, seed_dynamic_points, window_scale
 from .separation import TIME_CENTER, TIME_LOG_SCALE, SeparatedDeformation
+from .upgrade import upgrade_4dgs_model, written_by_reflow
 from .visualize import write_panel
 from .warp import gaussian_blur
 
@@ -256,6 +258,14 @@ class ReFlowPlugin(Plugin):
                 and len(self.keyframe_times) == 1)
 
     def on_load(self, ctx, point_cloud_dir) -> None:
+        source = self.p.upgrade_labels
+        if source == "motion" or (source == "auto" and not written_by_reflow(point_cloud_dir)):
+            times = sorted({float(c.time) for c in ctx.train_cameras})
+            self.info["upgrade"] = upgrade_4dgs_model(ctx.model, times, self.p.upgrade_motion_threshold,
+                                                      ctx.scene.cameras_extent, bake=self.is_enabled("separation"))
+            log.info("upgraded %s: %d dynamic, %d static Gaussians (motion > %.4g world units)", point_cloud_dir,
+                     self.info["upgrade"]["dynamic"], self.info["upgrade"]["static"],
+                     self.info["upgrade"]["threshold_world"])
         if self.is_enabled("separation"):
             for group in ("deformation", "grid"):
                 ctx.model.scale_learning_rate(group, self.p.dynamic_lr_scale)
