@@ -84,17 +84,19 @@ def resolve_scenes(source: str) -> list[tuple[str, Path]]:
     return [(path.name, path)]
 
 
-def plan(scenes: list[tuple[str, Path]], rows: list[str], out: Path, extra: list[str]) -> list[RunSpec]:
-    """Every (scene, row) run with its train.py command."""
-    unknown = [r for r in rows if r not in ROWS]
+def plan(scenes: list[tuple[str, Path]], rows: list[str], out: Path, extra: list[str],
+         table: dict[str, tuple[str, list[str]]] | None = None) -> list[RunSpec]:
+    """Every (scene, row) run with its train.py command (rows of `table`, default the ablation's)."""
+    table = ROWS if table is None else table
+    unknown = [r for r in rows if r not in table]
     if unknown:
-        raise AblationError(f"unknown row(s) {unknown}; known: {list(ROWS)}")
+        raise AblationError(f"unknown row(s) {unknown}; known: {list(table)}")
     specs = []
     for scene, source in scenes:
         for row in rows:
             run_dir = out / scene / row
             command = (sys.executable, str(REPO_ROOT / "train.py"), "-s", str(source), "-m", str(run_dir), "--quiet",
-                       *ROWS[row][1], *extra)
+                       *table[row][1], *extra)
             specs.append(RunSpec(scene, source, row, run_dir, command))
     return specs
 

@@ -61,6 +61,9 @@ class ReFlowParams:
                                               "these Gaussian sigmas in pixels (ours, beyond the paper: a wider "
                                               "capture range for large motion); [] = the paper's loss",
                                           check=_sigmas)
+    flow_every: int = param(1, "compute the flow-matching terms (and their flow channels) every this many "
+                               "iterations only: a cost knob of the accuracy-versus-time sweep",
+                            check=_positive)
     cam_flow_min_motion: float = param(0.05, "skip camera-flow losses on pairs whose cameras move less than "
                                              "this many pixels (estimated at the scene's median depth)",
                                        check=_non_negative)

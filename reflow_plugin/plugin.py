@@ -108,14 +108,18 @@ class ReFlowPlugin(Plugin):
     def uses_pairs(self) -> bool:
         return self.is_enabled("full_flow") or self.is_enabled("cam_flow") or self.is_enabled("ext_flow")
 
+    def _flow_step(self, ctx) -> bool:
+        """Whether this iteration computes flow terms (every `flow_every` iterations)."""
+        return ctx.iteration % self.p.flow_every == 0
+
     def _use_full(self, ctx) -> bool:
-        return self.is_enabled("full_flow") and ctx.stage == "fine" and len(ctx.views) == 2
+        return self.is_enabled("full_flow") and ctx.stage == "fine" and len(ctx.views) == 2 and self._flow_step(ctx)
 
     def _use_ext(self, ctx) -> bool:
-        return self.is_enabled("ext_flow") and ctx.stage == "fine" and len(ctx.views) == 2
+        return self.is_enabled("ext_flow") and ctx.stage == "fine" and len(ctx.views) == 2 and self._flow_step(ctx)
 
     def _use_cam(self, ctx) -> bool:
-        if not self.is_enabled("cam_flow") or len(ctx.batch) != 2:
+        if not self.is_enabled("cam_flow") or len(ctx.batch) != 2 or not self._flow_step(ctx):
             return False
         a, b = ctx.batch
         key = (a.uid, b.uid)

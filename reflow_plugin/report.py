@@ -1,6 +1,6 @@
 """What accuracy costs in time: PSNR-versus-training-time curves and the paper-style cost table.
 
-    python -m reflow_plugin.report OUT [--plot OUT/accuracy_vs_time.png]
+    python -m reflow_plugin.report OUT [--plot OUT/accuracy_vs_time.png] [--pareto]
 
 OUT is an ablation folder (`OUT/<scene>/<row>/`, from `python -m reflow_plugin.ablate`) or any
 folder of runs. Per run it reads `train_log.jsonl` (every "test" event carries the held-out PSNR
@@ -10,6 +10,10 @@ and the size of the final `point_cloud/iteration_N` folder. Writes the plot (one
 one curve per row) and `OUT/cost.md`, the cost table averaged over scenes: training time (wall and
 CPU), peak memory, render FPS, model size on disk, final PSNR. Runs from older code without
 timing fields in their "test" events are listed as missing, not guessed.
+
+`--pareto` (for a sweep, `python -m reflow_plugin.sweep`) also marks each scene's Pareto front of
+the runs' final (training wall time, test PSNR) points in the plot and writes `OUT/pareto.md`:
+per scene every run's time and PSNR, the runs on the front starred.
 """
 from __future__ import annotations
 
@@ -80,8 +84,43 @@ def cost_table(runs: dict[tuple[str, str], Path]) -> str:
     return "\n".join(lines)
 
 
-def plot(runs: dict[tuple[str, str], Path], path: Path) -> list[str]:
-    """PSNR against training wall time, one panel per scene; returns the runs without timing."""
+def pareto_front(points: dict[str, tuple[float, float]]) -> list[str]:
+    """Names whose (time, PSNR) no other point beats: at most the time and at least the PSNR, one strictly.
+
+    Returned by increasing time."""
+    front = []
+    for name, (t, q) in points.items():
+        dominated = any(t2 <= t and q2 >= q and (t2 < t or q2 > q) for other, (t2, q2) in points.items()
+                        if other != name)
+        if not dominated:
+            front.append(name)
+    return sorted(front, key=lambda n: points[n][0])
+
+
+def final_points(runs: dict[tuple[str, str], Path]) -> dict[str, dict[str, tuple[float, float]]]:
+    """{scene: {row: (training wall s, final test PSNR)}} of the runs whose totals were recorded."""
+    out: dict[str, dict[str, tuple[float, float]]] = {}
+    for (scene, row), run in runs.items():
+        figures = cost(run)
+        if figures["train_s"] is not None and figures["PSNR"] is not None:
+            out.setdefault(scene, {})[row] = (float(figures["train_s"]), float(figures["PSNR"]))
+    return out
+
+
+def pareto_table(points: dict[str, dict[str, tuple[float, float]]]) -> str:
+    """Markdown: per scene, each run's time and PSNR by increasing time, the front starred."""
+    lines = ["| scene | run | training s (wall) | test PSNR | on the front |", "|---|---|---:|---:|:---:|"]
+    for scene, by_row in sorted(points.items()):
+        front = set(pareto_front(by_row))
+        for row, (t, q) in sorted(by_row.items(), key=lambda item: item[1][0]):
+            lines.append(f"| {scene} | {row} | {t:.0f} | {q:.2f} | {'*' if row in front else ''} |")
+    return "\n".join(lines)
+
+
+def plot(runs: dict[tuple[str, str], Path], path: Path, pareto: bool = False) -> list[str]:
+    """PSNR against training wall time, one panel per scene; returns the runs without timing.
+
+    With ``pareto`` each scene's front of final points is drawn as a step line."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -99,6 +138,12 @@ def plot(runs: dict[tuple[str, str], Path], path: Path) -> list[str]:
                 missing.append(f"{scene}/{row}")
                 continue
             ax.plot([p[0] for p in points], [p[2] for p in points], marker="o", label=row)
+        if pareto:
+            finals = final_points({k: v for k, v in runs.items() if k[0] == scene}).get(scene, {})
+            front = pareto_front(finals)
+            if front:
+                ax.step([finals[n][0] for n in front], [finals[n][1] for n in front], where="post", color="black",
+                        linewidth=2, alpha=0.5, label="Pareto front")
         ax.set_title(scene)
         ax.set_xlabel("training time (s, wall)")
         ax.set_ylabel("test PSNR (dB)")
@@ -115,15 +160,20 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m reflow_plugin.report", description=__doc__.splitlines()[0])
     parser.add_argument("out", type=Path)
     parser.add_argument("--plot", type=Path)
+    parser.add_argument("--pareto", action="store_true", help="mark the Pareto front; write OUT/pareto.md")
     args = parser.parse_args(argv)
     runs = find_runs(args.out)
     if not runs:
         print(f"error: no finished run (train_log.jsonl + results.json) under {args.out}", file=sys.stderr)
         return 2
-    missing = plot(runs, args.plot or args.out / "accuracy_vs_time.png")
+    missing = plot(runs, args.plot or args.out / "accuracy_vs_time.png", pareto=args.pareto)
     table = cost_table(runs)
     (args.out / "cost.md").write_text(table + "\n")
     print(table)
+    if args.pareto:
+        front = pareto_table(final_points(runs))
+        (args.out / "pareto.md").write_text(front + "\n")
+        print("\n" + front)
     for name in missing:
         print(f"warning: {name} has no timed test events (trained before they were recorded)", file=sys.stderr)
     return 0

@@ -129,3 +129,29 @@ def test_report_cost_table_and_plot(tmp_path, capsys):
     assert (tmp_path / "accuracy_vs_time.png").stat().st_size > 1000
     assert "a/ours has no timed test events" in capsys.readouterr().err
     assert report.main([str(tmp_path / "empty")]) == 2
+
+
+def test_pareto_front_and_table(tmp_path):
+    from reflow_plugin import report
+
+    points = {"slow_good": (100.0, 28.0), "fast_bad": (10.0, 20.0), "dominated": (120.0, 27.0),
+              "tie_slower": (100.0, 27.5), "middle": (50.0, 25.0)}
+    assert report.pareto_front(points) == ["fast_bad", "middle", "slow_good"]
+    _fake_logged_run(tmp_path / "s" / "cheap", [(5.0, 18.0), (10.0, 21.0)], rss=500, ms=10.0)
+    _fake_logged_run(tmp_path / "s" / "costly", [(40.0, 22.0), (80.0, 20.5)], rss=500, ms=10.0)
+    assert report.main([str(tmp_path), "--pareto"]) == 0
+    lines = (tmp_path / "pareto.md").read_text().splitlines()
+    assert lines[2:] == ["| s | cheap | 10 | 21.00 | * |", "| s | costly | 80 | 20.50 |  |"]
+
+
+def test_sweep_variants_change_one_knob_each(tmp_path):
+    from reflow_plugin.ablate import plan
+    from reflow_plugin.sweep import VARIANTS
+
+    specs = plan([("skating", tmp_path)], list(VARIANTS), tmp_path / "out", [], table=VARIANTS)
+    commands = {s.row: list(s.command) for s in specs}
+    for name, command in commands.items():
+        reference = commands["reflow" if name.startswith("reflow") else "baseline"]
+        added = [a for a in command if a not in reference]
+        assert (added == []) == (name in ("reflow", "baseline")), (name, added)
+    assert "--flow_every" in commands["reflow_flow_every"] and "-r" in commands["baseline_resolution"]

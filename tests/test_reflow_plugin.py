@@ -18,6 +18,7 @@ from baselines.synthetic import get_scene, simulate
 from reflow_plugin.labels import fit_disparity, vote_labels
 from reflow_plugin.matching import MatchingConfig, pair_losses
 from reflow_plugin.pairs import PairError, PairSampler, curriculum_radius
+from reflow_plugin.params import ReFlowParams
 from reflow_plugin.plugin import ReFlowPlugin
 from reflow_plugin.seeding import reference_frame, seed_dynamic_points
 from tests.test_trainer import FAST
@@ -155,6 +156,13 @@ def test_skips(built):
     ctx.views = views
     assert silent.extra_features(ctx, 0) == {} and silent.extra_losses(ctx) is None
     assert silent.select_batch(ctx) is None  # no pairs: the host's own sampling
+    every = ReFlowPlugin({"ReFlowParams": ReFlowParams(flow_every=3)})  # flow terms every third iteration
+    every.scene_depth = plugin.scene_depth
+    ctx.stage = "fine"
+    ctx.iteration = 6
+    assert every._use_full(ctx) and every._use_cam(ctx)
+    ctx.iteration = 7
+    assert every.extra_features(ctx, 0) == {} and every.extra_losses(ctx) is None
 
 
 def test_coarse_stage_freezes_dynamic_gaussians_and_masks_the_loss(built):
