@@ -76,7 +76,7 @@ class RunLog:
 
     def event(self, kind: str, **fields: Any) -> None:
         self._write({"kind": kind, "time": time.time(), **fields})
-        if not self.quiet and kind in ("test", "saved", "checkpoint", "resumed", "loaded", "train_end"):
+        if not self.quiet and kind in ("test", "saved", "checkpoint", "resumed", "loaded", "train_end", "final_stretch"):
             tqdm.write(f"[{kind}] " + ", ".join(f"{k}={_short(v)}" for k, v in fields.items()))
 
     def iteration(self, ctx: Any, every: int) -> None:

@@ -35,6 +35,7 @@ from .checkpoint import (
     save_training_state,
 )
 from .densification import densification_step
+from .final_stretch import final_stretch
 from .gaussian_model import GaussianModel
 from .hooks import HookRunner, TrainContext
 from .plugins import Plugin
@@ -298,8 +299,12 @@ class Trainer:
             torch.stack(grads).sum(dim=0), cam.width, cam.height,
             max_gaussians=self.opt.densify_max_gaussians, prune_min_gaussians=self.opt.prune_min_gaussians,
             protect=protect,
+            stretch=final_stretch(self.opt, ctx.iteration, ctx.stage, ctx.stage_iterations, self.run.save_iterations),
         )
         record = ctx.densify_record
+        if record.skipped:
+            self.run_log.event("final_stretch", stage=ctx.stage, iteration=ctx.iteration, skipped=record.skipped,
+                               reason="kept (saved/final) iteration ahead: no opacity reset or densification")
         if record.densify_ran or record.prune_ran or record.opacity_reset:
             self.hooks.call("post_densify", ctx)
 
