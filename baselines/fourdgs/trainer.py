@@ -372,7 +372,10 @@ class Trainer:
         path = Path(spec)
         if path.is_dir():
             pc_dir = latest_point_cloud_dir(path)
-            self.load_model_from(pc_dir)
+            try:
+                self.load_model_from(pc_dir)
+            except ValueError as err:
+                raise ValueError(f"{err}; {config_hint(path)}") from None
             # A 4DGS output is a trained model: continue in the fine stage from iteration 0.
             return {"stage": "fine", "point_cloud_dir": pc_dir}
         if not path.is_file():
@@ -398,6 +401,18 @@ class Trainer:
         self.hooks.load_state_dict(extra.get("plugins") or {})
         self.run_log.event("resumed", path=str(resume["path"]), stage=state.stage, iteration=state.iteration)
         return int(state.iteration)
+
+
+def config_hint(start_checkpoint: Path) -> str:
+    """What to pass when an old output's files do not fit the model this run built."""
+    from arguments.saved import model_dir_of_checkpoint, read_saved_configs
+
+    model_dir = model_dir_of_checkpoint(start_checkpoint) or start_checkpoint
+    configs = read_saved_configs(model_dir)
+    if configs:
+        return f"that run was trained with --configs {' '.join(configs)} (from {model_dir}): pass it"
+    return (f"{model_dir} records no config file: pass the --configs file it was trained with "
+            "(e.g. arguments/dnerf/<scene>.py)")
 
 
 def latest_point_cloud_dir(path: Path) -> Path:
