@@ -85,6 +85,8 @@ class Trainer:
         model_path: output directory (created).
     """
 
+    QUICK_EVAL_VIEWS = 8  # views per split of the intermediate test events
+
     def __init__(self, args: Any, scene: SceneInfo, plugins: list[Plugin], model_path: Path) -> None:
         self.args = args
         self.opt = args.opt
@@ -173,9 +175,11 @@ class Trainer:
             self.train_seconds += time.perf_counter() - wall
             self.train_cpu_seconds += time.process_time() - cpu
             bar.update(ctx)
-            if iteration in self.run.test_iterations or (stage == "fine" and iteration == total):
+            final = stage == "fine" and iteration == total
+            if iteration in self.run.test_iterations or final:
+                # the final figure is over every test view: the one results.json reports
                 self.run_log.event("test", stage=stage, iteration=iteration, train_seconds=self.train_seconds,
-                                   train_cpu_seconds=self.train_cpu_seconds, **self.quick_eval())
+                                   train_cpu_seconds=self.train_cpu_seconds, **self.quick_eval(all_test_views=final))
             if iteration in self.run.save_iterations or iteration == total:
                 self.save_point_cloud()
             if iteration in self.run.checkpoint_iterations:
@@ -310,15 +314,20 @@ class Trainer:
 
     # ------------------------------------------------------------------ evaluation
     @torch.no_grad()
-    def quick_eval(self, max_views: int = 8) -> dict[str, float]:
-        """Mean PSNR / L1 on (up to max_views of) the test cameras and the training cameras."""
+    def quick_eval(self, max_views: int | None = None, all_test_views: bool = False) -> dict[str, float]:
+        """Mean PSNR / L1 on (up to max_views of) the test cameras and the training cameras.
+
+        ``all_test_views``: every test camera, so test_psnr equals evaluate_cameras' mean PSNR.
+        """
+        max_views = max_views or self.QUICK_EVAL_VIEWS
         out: dict[str, float] = {}
         for split, cams in (("test", self.test_cameras), ("train", self.train_cameras)):
             if not cams:
                 continue
-            step = max(1, len(cams) // max_views)
+            count = len(cams) if split == "test" and all_test_views else max_views
+            step = max(1, len(cams) // count)
             values = []
-            for cam in cams[::step][:max_views]:
+            for cam in cams[::step][:count]:
                 view = render(self.ctx.model, cam, self.ctx.stage, self.ctx.background, self.pipe.backend)
                 values.append((float(psnr(view.image.clamp(0, 1), cam.image)), float((view.image - cam.image).abs().mean())))
             out[f"{split}_psnr"] = sum(v[0] for v in values) / len(values)
