@@ -123,3 +123,11 @@ def test_point_cloud_validation():
         PointCloud(np.zeros((1, 3)), np.full((1, 3), 2.0))
     with pytest.raises(DatasetError, match="colours"):
         PointCloud(np.zeros((2, 3)), np.ones((1, 3)))
+
+
+def test_seeded_triangulation_is_bit_identical_across_runs(nvidia_scene):
+    first = triangulate_static_points(nvidia_scene.train_cameras, seed=5)
+    second = triangulate_static_points(nvidia_scene.train_cameras, seed=5)
+    assert len(first) > 0
+    for name in ("points", "colors", "errors", "obs_point", "obs_camera", "obs_xy"):
+        assert np.array_equal(getattr(first, name), getattr(second, name)), name
