@@ -117,7 +117,8 @@ class Trainer:
         """Initial point cloud and model (plugins may replace either), before any training."""
         ctx = self.ctx
         self.hooks.call("on_scene_loaded", ctx)
-        cloud, source = initial_point_cloud(ctx.scene, seed=self.opt.seed)
+        cloud, source = initial_point_cloud(ctx.scene, seed=self.opt.seed,
+                                            check_dataset_points=not self.args.model.force_dataset_points)
         ctx.point_cloud, ctx.point_cloud_source = cloud, source
         replacement = self.hooks.first("initial_point_cloud", ctx)
         if replacement is not None:
