@@ -39,7 +39,8 @@ def test_ambiguous_folder_prefers_poses_bounds_and_says_so(mixed, caplog):
     assert "picked nvidia" in warnings[0] and "poses_bounds.npy" in warnings[0]
     assert "dnerf (transforms_train.json)" in warnings[0] and "hypernerf (dataset.json + scene.json)" in warnings[0]
     assert info.metadata["layout_detection"]["also_matched"] == [
-        {"type": "hypernerf", "files": "dataset.json + scene.json"}, {"type": "dnerf", "files": "transforms_train.json"}]
+        {"type": "hypernerf", "files": "dataset.json + scene.json"},
+        {"type": "dnerf", "files": "transforms_train.json"}]
     assert load_scene(mixed, dataset_type="dnerf").dataset_type == "dnerf"  # --dataset_type overrides
 
 

@@ -36,7 +36,8 @@ def _has_image_folder(path: Path) -> bool:
 SIGNATURES: tuple[tuple[str, str, Callable[[Path], bool]], ...] = (
     ("nvidia", "poses_bounds.npy + images*/",
      lambda p: (p / "poses_bounds.npy").is_file() and _has_image_folder(p)),
-    ("hypernerf", "dataset.json + scene.json", lambda p: (p / "dataset.json").is_file() and (p / "scene.json").is_file()),
+    ("hypernerf", "dataset.json + scene.json",
+     lambda p: (p / "dataset.json").is_file() and (p / "scene.json").is_file()),
     ("dnerf", "transforms_train.json", lambda p: (p / "transforms_train.json").is_file()),
     ("nvidia", "poses_bounds.npy", lambda p: (p / "poses_bounds.npy").is_file()),
     ("colmap", "sparse/0/cameras.{bin,txt}", lambda p: find_model_dir(p) is not None),

@@ -83,6 +83,7 @@ def load_scene(source_path: Path | str, dataset_type: str | None = "auto", image
         check_poses_bounds(source, images)  # a NaN there must not pass unnoticed, whatever reads the folder
     scene = reader(source, images=images, resolution=resolution, eval=eval,
                    white_background=white_background, llffhold=llffhold, **options)
-    scene.metadata["layout_detection"] = detection.as_dict() if detection else {"picked": kind, "because": "--dataset_type"}
+    chosen = detection.as_dict() if detection else {"picked": kind, "because": "--dataset_type"}
+    scene.metadata["layout_detection"] = chosen
     warn_split_overlap(scene)
     return scene

@@ -38,7 +38,8 @@ def reset_recovery_window(opt: Any) -> int:
     return max(1, min(int(opt.opacity_reset_interval), RESET_RECOVERY_ITERATIONS))
 
 
-def final_stretch(opt: Any, iteration: int, stage: str, stage_total: int, save_iterations: Iterable[int]) -> FinalStretch:
+def final_stretch(opt: Any, iteration: int, stage: str, stage_total: int,
+                  save_iterations: Iterable[int]) -> FinalStretch:
     """The steps allowed at ``iteration`` of ``stage`` (``stage_total`` iterations long)."""
     if stage != "fine":
         return FinalStretch()

@@ -38,6 +38,7 @@ class StageTimer:
         return {k: 1000.0 * self.total[k] / max(1, self.count[k]) for k in self.total}
 
 
+PRINTED_EVENTS = ("test", "saved", "checkpoint", "resumed", "loaded", "train_end", "final_stretch")
 PLAIN_PROGRESS_EVERY = 100  # iterations between progress lines when stderr is not a terminal
 
 
@@ -104,7 +105,7 @@ class RunLog:
 
     def event(self, kind: str, **fields: Any) -> None:
         self._write({"kind": kind, "time": time.time(), **fields})
-        if not self.quiet and kind in ("test", "saved", "checkpoint", "resumed", "loaded", "train_end", "final_stretch"):
+        if not self.quiet and kind in PRINTED_EVENTS:
             tqdm.write(f"[{kind}] " + ", ".join(f"{k}={_short(v)}" for k, v in fields.items()))
 
     def iteration(self, ctx: Any, every: int) -> None:
