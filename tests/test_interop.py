@@ -38,3 +38,23 @@ def test_start_from_old_folder_reads_its_model_config_or_names_the_config(tiny_s
     assert mismatched.hidden.net_width == 64
     with pytest.raises(ValueError, match=r"deformation\.pth.*--configs arguments/dnerf/lego\.py"):
         mismatched.train()
+
+
+def test_resume_from_a_4dgs_chkpnt_with_numpy_scalars(tiny_scene, tmp_path):
+    import numpy as np
+    import torch
+
+    run = ["-s", str(tiny_scene), "--configs", SYNTHETIC, "--coarse_iterations", "2", *SHORT]
+    first = build_trainer([*run, "-m", str(tmp_path / "a"), "--iterations", "2", "--checkpoint_iterations", "2"])
+    first.train()
+    ours = torch.load(tmp_path / "a" / "chkpnt_fine_2.pth", weights_only=False)
+    capture = list(ours["capture"][:14])  # 4DGS: (gaussians.capture(), iteration), numpy lrs inside
+    for group in capture[12]["param_groups"]:
+        group["lr"] = np.float64(group["lr"])
+    capture[13] = np.float64(capture[13])
+    four_dgs = tmp_path / "old" / "chkpnt_fine_2.pth"
+    four_dgs.parent.mkdir()
+    torch.save((tuple(capture), 2), four_dgs)
+    resumed = build_trainer([*run, "-m", str(tmp_path / "b"), "--iterations", "4", "--start_checkpoint", str(four_dgs)])
+    result = resumed.train()
+    assert result.final_iteration == 4 and resumed.ctx.model.num_gaussians == first.ctx.model.num_gaussians
