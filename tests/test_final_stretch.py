@@ -48,7 +48,7 @@ def test_final_iteration_reset_does_not_collapse_model(tiny_scene, tmp_path):
     # Fine stage of 30 iterations whose last one is both a reset and a densification iteration.
     argv = ["-s", str(tiny_scene), "-m", str(tmp_path / "run"),
             "--configs", str(REPO_ROOT / "arguments/synthetic/default.py"), "--quiet",
-            "--coarse_iterations", "10", "--iterations", "30", "--test_iterations", "[]", "--save_iterations", "[]",
+            "--coarse_iterations", "10", "--iterations", "30", "--test_iterations", "[20]", "--save_iterations", "[]",
             "--opacity_reset_interval", "30", "--densify_from_iter", "5", "--densification_interval", "15",
             "--densify_until_iter", "100", "--pruning_from_iter", "5", "--pruning_interval", "15",
             "--prune_min_gaussians", "0"]
@@ -60,6 +60,8 @@ def test_final_iteration_reset_does_not_collapse_model(tiny_scene, tmp_path):
     skips = [e for e in events if e["kind"] == "final_stretch"]
     assert [(e["stage"], e["iteration"], e["skipped"]) for e in skips] == [
         ("fine", 30, ["densify", "prune", "opacity_reset"])]
+    tests = {e["iteration"]: e["test_psnr"] for e in events if e["kind"] == "test" and e["stage"] == "fine"}
+    assert tests[30] >= tests[20] - 0.5, tests  # a reset at 30 would drop it by several dB
     densified = [e for e in events if e["kind"] == "saved"]
     assert densified, "the final model is saved"
 
