@@ -46,6 +46,8 @@ def test_ambiguous_folder_prefers_poses_bounds_and_says_so(mixed, caplog):
 
 def test_unambiguous_folder_gives_no_warning(scene, tmp_path, caplog):
     layouts.write_nvidia(scene, tmp_path / "nv", disp=False, masks=False)
+    (tmp_path / "nv" / "sparse" / "0").mkdir(parents=True)  # the COLMAP model LLFF poses come from
+    (tmp_path / "nv" / "sparse" / "0" / "cameras.txt").write_text("")
     with caplog.at_level(logging.WARNING, logger="baselines.data"):
         detection = detect_layout(tmp_path / "nv")
     assert detection.kind == "nvidia" and not detection.ambiguous and not caplog.records

@@ -12,8 +12,9 @@ other codebases keeps ``poses_bounds.npy`` + ``images/`` next to ``dataset.json`
 5. ``colmap``: ``sparse/0/cameras.{bin,txt}`` (last: LLFF-style scenes keep the COLMAP model they
    were posed with).
 
-When more than one layout matches, the choice, the reason and the other matches are logged as one
-warning and recorded (``Detection.as_dict``, saved in the run's ``config.json``);
+A COLMAP model beside ``poses_bounds.npy`` is no competing layout: LLFF poses come from it, and the
+nvidia reader reads it as its point file. When more than one layout matches otherwise, the choice,
+the reason and the other matches are logged as one warning and recorded (``Detection.as_dict``, saved in the run's ``config.json``);
 ``--dataset_type`` overrides.
 """
 from __future__ import annotations
@@ -42,6 +43,8 @@ SIGNATURES: tuple[tuple[str, str, Callable[[Path], bool]], ...] = (
     ("nvidia", "poses_bounds.npy", lambda p: (p / "poses_bounds.npy").is_file()),
     ("colmap", "sparse/0/cameras.{bin,txt}", lambda p: find_model_dir(p) is not None),
 )
+# (picked, other): the other layout's files belong to the picked one (see the module docstring)
+COMPANIONS = {("nvidia", "colmap")}
 
 
 @dataclass
@@ -76,7 +79,8 @@ def detect_layout(source_path: Path | str) -> Detection:
         looked_for = "; ".join(f"{what} ({kind})" for kind, what, _ in SIGNATURES)
         raise DatasetError(f"{source} matches no known dataset layout; looked for: {looked_for}")
     kind, what = matched[0]
-    others = [(k, w) for k, w in matched[1:] if k != kind]  # nvidia's weaker signature is no other layout
+    # nvidia's weaker signature is no other layout, nor a companion's files
+    others = [(k, w) for k, w in matched[1:] if k != kind and (kind, k) not in COMPANIONS]
     detection = Detection(kind, what, others)
     if detection.ambiguous:
         log.warning("%s: several dataset layouts match: %s", source, detection.describe())
