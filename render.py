@@ -10,7 +10,11 @@ from __future__ import annotations
 
 import sys
 
-from baselines.fourdgs.app import render_from_argv, run_cli
+from baselines.thread_policy import apply_thread_policy
+
+apply_thread_policy()  # before torch starts: passive OpenMP waits, threads from the CPUs available
+
+from baselines.fourdgs.app import render_from_argv, run_cli  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

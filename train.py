@@ -15,7 +15,11 @@ from __future__ import annotations
 
 import sys
 
-from baselines.fourdgs.app import run_cli, train_from_argv
+from baselines.thread_policy import apply_thread_policy
+
+apply_thread_policy()  # before torch starts: passive OpenMP waits, threads from the CPUs available
+
+from baselines.fourdgs.app import run_cli, train_from_argv  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -26,7 +26,7 @@ from .layers import ConfigError, Layer, Schema, build_schema, merge_layers, reso
     warn_compat_fields
 from .params import (HOST_GROUPS, ModelHiddenParams, ModelParams, OptimizationParams,
                      PipelineParams, RenderParams, RunParams)
-from .saved import read_saved_config, read_saved_plugins
+from .saved import model_dir_of_checkpoint, read_saved_config, read_saved_model_config, read_saved_plugins
 
 CLI = "command line"
 _RESERVED = {*HOST_GROUPS, "RunParams", "RenderParams"}
@@ -79,6 +79,10 @@ def parse_train_args(argv: list[str] | None = None,
     dataclass declared with :func:`arguments.fields.param`; its fields become flags too.
     Flag errors exit through argparse (status 2, with close matches for unknown flags); config
     problems raise :class:`ConfigError`.
+
+    With ``--start_checkpoint`` naming an output folder and no ``--configs``, the model
+    hyperparameters come from that folder's saved configuration (``config.json`` or 4DGS's
+    ``cfg_args``), as ``render.py -m`` does; flags typed still win.
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     extra = _check_extra(extra_groups)
@@ -87,7 +91,11 @@ def parse_train_args(argv: list[str] | None = None,
     parser = _build_parser(schema, classes, "Train a 4DGS model (optionally with plugins).")
     cli_layer = _parse_cli(parser, schema, argv)
     configs = cli_layer.get("RunParams", "configs", [])
-    layer = merge_layers(load_configs(configs, schema), cli_layer)
+    base = load_configs(configs, schema)
+    old_run = model_dir_of_checkpoint(cli_layer.get("RunParams", "start_checkpoint"))
+    if old_run is not None and not configs:
+        base = read_saved_model_config(old_run, schema)
+    layer = merge_layers(base, cli_layer)
     instances, sources = resolve(schema, classes, layer)
     _absolute_source_path(instances["ModelParams"])
     warn_compat_fields(schema, instances, sources)

@@ -5,7 +5,7 @@ Every field of 4DGS's ``ModelParams``, ``PipelineParams``, ``OptimizationParams`
 ``ModelHiddenParams`` exists under its 4DGS name with its 4DGS default. Fields marked
 ``compat`` are accepted only so that 4DGS config files and command lines keep working: they have
 no effect here, and a non-default value logs one warning. Fields marked ``ours`` are additions of
-this project (``ModelParams.dataset_type``, ``PipelineParams.backend``, ``PipelineParams.device``,
+this project (``ModelParams.dataset_type/force_dataset_points``, ``PipelineParams.backend``, ``PipelineParams.device``,
 ``OptimizationParams.seed``, and ``RunParams.plugin/disable/enable/log_every``).
 """
 from __future__ import annotations
@@ -93,6 +93,9 @@ class ModelParams:
     # --- ours ---
     dataset_type: str = param("auto", "dataset reader (auto: chosen from the files present)",
                               ours=True, choices=DATASET_TYPES)
+    force_dataset_points: bool = param(False, "start from the dataset's point file even when the "
+                                              "training cameras barely see it (placeholder check)",
+                                       ours=True)
 
 
 @dataclass

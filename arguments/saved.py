@@ -92,6 +92,52 @@ def read_saved_config(model_dir: str | Path, schema: Schema) -> Layer:
     return Layer()
 
 
+MODEL_GROUPS = ("ModelHiddenParams",)  # the architecture; plus ModelParams.sh_degree
+MODEL_FIELDS = {"ModelParams": ("sh_degree",)}
+
+
+def model_dir_of_checkpoint(start_checkpoint: str | Path | None) -> Path | None:
+    """The model directory behind ``--start_checkpoint`` when it names a folder, else None.
+
+    ``OLD/point_cloud/iteration_N`` (a folder holding ``point_cloud.ply``) -> ``OLD``; ``OLD``
+    itself otherwise. No checkpoint or a ``chkpnt_*.pth`` file gives None (its run's flags are the user's).
+    """
+    if not start_checkpoint:
+        return None
+    path = Path(start_checkpoint).expanduser()
+    if not path.is_dir():
+        return None
+    return path.parent.parent if (path / "point_cloud.ply").is_file() else path
+
+
+def read_saved_model_config(model_dir: str | Path, schema: Schema) -> Layer:
+    """The model hyperparameters (``ModelHiddenParams``, ``sh_degree``) of a saved run, as a layer.
+
+    What ``render.py -m`` reads, restricted to what fixes the shapes of a trained model, so a run
+    continuing from an old output (ours or 4DGS's) builds a model its files fit.
+    """
+    saved = read_saved_config(model_dir, schema)
+    kept = Layer()
+    for group, names in saved.values.items():
+        for name, value in names.items():
+            if group in MODEL_GROUPS or name in MODEL_FIELDS.get(group, ()):
+                kept.set(group, name, value, saved.sources[(group, name)])
+    return kept
+
+
+def read_saved_configs(model_dir: str | Path) -> list[str]:
+    """The ``--configs`` a saved run was trained with ([] when it recorded none)."""
+    model_dir = Path(model_dir).expanduser()
+    json_path, cfg_path = model_dir / CONFIG_JSON, model_dir / CFG_ARGS
+    if json_path.is_file():
+        value = _load_json(json_path).get("_configs", [])
+    elif cfg_path.is_file():
+        value = _eval_cfg_args(cfg_path).get("configs", [])
+    else:
+        return []
+    return split_comma_list([value] if isinstance(value, str) else list(value))
+
+
 def read_saved_plugins(model_dir: str | Path) -> list[str]:
     """``RunParams.plugin`` of a model directory's saved configuration ([] when none)."""
     model_dir = Path(model_dir).expanduser()

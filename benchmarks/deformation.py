@@ -22,12 +22,15 @@ import time
 import types
 from pathlib import Path
 
-import torch
-import torch.nn.functional as F
-from torch import nn
-
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from baselines.thread_policy import apply_thread_policy  # noqa: E402
+
+apply_thread_policy()  # before torch: passive OpenMP waits unless OMP_WAIT_POLICY is set
+
+import torch  # noqa: E402
+import torch.nn.functional as F  # noqa: E402
+from torch import nn  # noqa: E402
 
 from baselines.fourdgs.deformation import DeformNetwork  # noqa: E402
 from baselines.fourdgs.state import GaussianState  # noqa: E402

@@ -38,9 +38,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-import torch
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from baselines.thread_policy import apply_thread_policy  # noqa: E402
+
+apply_thread_policy()  # before torch: passive OpenMP waits unless OMP_WAIT_POLICY is set
+
+import torch  # noqa: E402
 
 from baselines.render import kernel, rasterize  # noqa: E402
 from machine import cpu_model, load_average  # noqa: E402  (benchmarks/machine.py)

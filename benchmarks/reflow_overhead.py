@@ -22,9 +22,11 @@ import sys
 import time
 from pathlib import Path
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+from baselines.thread_policy import apply_thread_policy  # noqa: E402
+
+apply_thread_policy()  # before torch: passive OpenMP waits unless OMP_WAIT_POLICY is set
 
 import torch  # noqa: E402
 

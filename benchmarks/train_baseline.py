@@ -50,6 +50,8 @@ if __package__ in (None, ""):
 
 from machine import cpu_model, load_average  # noqa: E402  (benchmarks/machine.py, beside this script)
 
+from baselines.thread_policy import apply_thread_policy  # noqa: E402
+
 DEFAULT_SCENES = ("balloon", "playground", "skating", "truck", "umbrella", "static")
 DEFAULT_CONFIG = REPO_ROOT / "arguments" / "synthetic" / "default.py"
 # The default (short) schedule: the shipped config's stage lengths (300 + 2000) cut to 100 + 500 so
@@ -224,7 +226,7 @@ def deformation_worker(payload: str) -> None:
 # ------------------------------------------------------------------------------ parent side
 def _child_env() -> dict[str, str]:
     env = dict(os.environ)
-    env["OMP_WAIT_POLICY"] = "PASSIVE"  # waiting OpenMP threads sleep instead of spinning on a busy machine
+    apply_thread_policy(env, torch_loaded=False)  # the child starts torch afresh; the user's settings win
     env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     return env
 

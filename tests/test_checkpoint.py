@@ -188,3 +188,37 @@ def test_training_state_round_trip_and_4dgs_format(tmp_path):
     torch.save({"something": 1}, broken)
     with pytest.raises(ValueError, match="neither"):
         load_training_state(broken)
+
+
+def _write_4dgs_checkpoint(path, model, iteration):
+    """As 4DGS's train.py: torch.save((gaussians.capture(), iteration)), numpy scalars inside.
+
+    4DGS's learning rates come from get_expon_lr_func (numpy.float64) and its spatial_lr_scale
+    from the cameras' radius (numpy.float32).
+    """
+    capture = list(model.capture()[:14])
+    optimizer_state = capture[12]
+    for group in optimizer_state["param_groups"]:
+        group["lr"] = np.float64(group["lr"])
+    capture[12], capture[13] = optimizer_state, np.float32(capture[13])
+    torch.save((tuple(capture), iteration), path)
+
+
+def test_4dgs_checkpoint_with_numpy_scalars_loads_without_trusting_pickles(tmp_path):
+    model = make_model(count=10)
+    model.deform(0.1, "fine").means.sum().backward()
+    model.optimizer.step()
+    path = tmp_path / "chkpnt_fine_7000.pth"
+    _write_4dgs_checkpoint(path, model, 7000)
+    with pytest.raises(Exception, match="scalar"):
+        torch.load(path, weights_only=True)  # the failure 4DGS users met
+    state = load_training_state(path)
+    assert (state.iteration, state.stage, state.is_4dgs_format) == (7000, "fine", True)
+    restored = GaussianModel(3, hidden_args())
+    restored.restore(state.capture, opt_args())
+    assert torch.equal(restored._xyz, model._xyz)
+
+    # any other object stays refused
+    torch.save(((tmp_path,), 1), tmp_path / "chkpnt_fine_1.pth")
+    with pytest.raises(ValueError, match="chkpnt_fine_1.pth"):
+        load_training_state(tmp_path / "chkpnt_fine_1.pth")

@@ -123,3 +123,40 @@ def test_point_cloud_validation():
         PointCloud(np.zeros((1, 3)), np.full((1, 3), 2.0))
     with pytest.raises(DatasetError, match="colours"):
         PointCloud(np.zeros((2, 3)), np.ones((1, 3)))
+
+
+def test_seeded_triangulation_is_bit_identical_across_runs(nvidia_scene):
+    first = triangulate_static_points(nvidia_scene.train_cameras, seed=5)
+    second = triangulate_static_points(nvidia_scene.train_cameras, seed=5)
+    assert len(first) > 0
+    for name in ("points", "colors", "errors", "obs_point", "obs_camera", "obs_xy"):
+        assert np.array_equal(getattr(first, name), getattr(second, name)), name
+
+
+def _cube_behind_the_cameras(info, count=3000, seed=0):
+    """A random cube (the placeholder seen in real copies) placed where no training camera looks."""
+    centres = np.stack([-c.viewmat[:3, :3].double().numpy().T @ c.viewmat[:3, 3].double().numpy()
+                        for c in info.train_cameras])
+    forward = np.stack([c.viewmat[2, :3].double().numpy() for c in info.train_cameras]).mean(axis=0)
+    centre = centres.mean(axis=0) - 50.0 * forward / np.linalg.norm(forward)
+    points = np.random.default_rng(seed).uniform(centre - 5.0, centre + 5.0, size=(count, 3))
+    return PointCloud(points, np.full((count, 3), 0.5))
+
+
+def test_placeholder_cloud_no_camera_sees_falls_back(scene, nvidia_scene, caplog):
+    import dataclasses
+
+    from baselines.data.cloud_check import check_cloud_against_cameras
+
+    placeholder = dataclasses.replace(nvidia_scene, point_cloud=_cube_behind_the_cameras(nvidia_scene))
+    coverage = check_cloud_against_cameras(placeholder.point_cloud.points, placeholder.train_cameras)
+    assert not coverage.passed and coverage.views_seeing == 0.0 and coverage.in_front.max() == 0.0
+    with caplog.at_level(logging.WARNING, logger="baselines.data"):
+        cloud, source = initial_point_cloud(placeholder, min_points=20)
+    assert source == "triangulated"
+    assert any("placeholder" in r.getMessage() and "0 of" in r.getMessage() for r in caplog.records)
+    forced, source = initial_point_cloud(placeholder, check_dataset_points=False)
+    assert source == "dataset" and len(forced) == 3000
+    # a real reconstruction (points on the scene's static surfaces) passes the check
+    real = check_cloud_against_cameras(layouts.static_surface_points(scene), nvidia_scene.train_cameras)
+    assert real.passed, real.summary()

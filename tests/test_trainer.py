@@ -35,7 +35,8 @@ def mean_psnr(trainer, stage: str) -> float:
     return result.mean["PSNR"]
 
 
-def test_training_beats_initial_render_on_heldout_views(tiny_scene, tmp_path):
+def test_training_beats_initial_render_on_heldout_views(tiny_scene, tmp_path, monkeypatch):
+    monkeypatch.setattr("baselines.fourdgs.trainer.Trainer.QUICK_EVAL_VIEWS", 1)  # intermediate: 1 view
     trainer = build_trainer(base_argv(tiny_scene, tmp_path / "run", 60, 240))
     trainer.build()
     assert trainer.test_cameras, "the tiny scene must have held-out frames (--eval)"
@@ -52,6 +53,9 @@ def test_training_beats_initial_render_on_heldout_views(tiny_scene, tmp_path):
     assert summary.video is not None and summary.video.stat().st_size > 0
     log = [json.loads(line) for line in (tmp_path / "run" / "train_log.jsonl").read_text().splitlines()]
     assert any(r["kind"] == "iter" and r["stage"] == "fine" for r in log)
+    final_test = [r for r in log if r["kind"] == "test"][-1]  # the last printed [test] line
+    assert final_test["iteration"] == result.final_iteration
+    assert final_test["test_psnr"] == pytest.approx(results[method]["PSNR"], abs=1e-9)
 
 
 def _final_params(trainer) -> dict[str, torch.Tensor]:

@@ -5,6 +5,11 @@ triangulated from the known training cameras with pycolmap ("triangulated"; moti
 give no features); else random points inside the scene bounds ("random"), the 3DGS/4DGS random
 initialisation. Triangulation that fails or yields fewer than `min_points` points falls back to
 random, and the reason is logged.
+
+The dataset's cloud is first checked against the training cameras (cloud_check.py): a placeholder
+that the cameras barely see (e.g. a random cube) is skipped with a warning, and the chain goes on
+to triangulation/random. `check_dataset_points=False` (train.py: `--force_dataset_points`) or
+method="dataset" uses the file regardless.
 """
 from __future__ import annotations
 
@@ -12,6 +17,7 @@ import logging
 
 import numpy as np
 
+from .cloud_check import check_cloud_against_cameras
 from .errors import DatasetError
 from .pointcloud import PointCloud, sample_colours
 from .scene_info import SceneInfo
@@ -24,7 +30,8 @@ METHODS = ("auto", "dataset", "triangulated", "random")
 
 def initial_point_cloud(scene: SceneInfo, max_points: int = 200_000, seed: int = 0, method: str = "auto",
                         random_points: int = 2000, min_points: int = 100,
-                        triangulation_options: dict | None = None) -> tuple[PointCloud, str]:
+                        triangulation_options: dict | None = None,
+                        check_dataset_points: bool = True) -> tuple[PointCloud, str]:
     """(PointCloud, source) with source in {"dataset", "triangulated", "random"}.
 
     Args:
@@ -36,14 +43,18 @@ def initial_point_cloud(scene: SceneInfo, max_points: int = 200_000, seed: int =
         random_points: size of a random initialisation (4DGS uses 2000 for D-NeRF).
         min_points: fewer triangulated points than this counts as a failure.
         triangulation_options: keyword arguments for `triangulate_static_points`.
+        check_dataset_points: with method="auto", skip a dataset cloud the cameras barely see.
     """
     if method == "triangulate":
         method = "triangulated"
     if method not in METHODS:
         raise DatasetError(f"unknown initial point method {method!r}; expected one of {', '.join(METHODS)}")
     if method in ("auto", "dataset"):
-        if scene.point_cloud is not None:
-            return scene.point_cloud.subsample(max_points, seed), "dataset"
+        cloud = scene.point_cloud
+        if cloud is not None and method == "auto" and check_dataset_points:
+            cloud = _unless_placeholder(scene, seed)
+        if cloud is not None:
+            return cloud.subsample(max_points, seed), "dataset"
         if method == "dataset":
             raise DatasetError(f"{scene.source_path}: the dataset has no point file")
     if method in ("auto", "triangulated"):
@@ -63,6 +74,16 @@ def initial_point_cloud(scene: SceneInfo, max_points: int = 200_000, seed: int =
             raise DatasetError(f"{scene.source_path}: {reason}")
         log.warning("initial points: %s; falling back to %d random points", reason, random_points)
     return random_point_cloud(scene, random_points, seed), "random"
+
+
+def _unless_placeholder(scene: SceneInfo, seed: int) -> PointCloud | None:
+    """The dataset's cloud, or None (with a warning) when the training cameras barely see it."""
+    coverage = check_cloud_against_cameras(scene.point_cloud.points, scene.train_cameras, seed=seed)
+    if coverage.passed:
+        return scene.point_cloud
+    log.warning("initial points: %s: the dataset's point file looks like a placeholder (%s); ignoring it "
+                "(--force_dataset_points uses it anyway)", scene.source_path, coverage.summary())
+    return None
 
 
 def random_point_cloud(scene: SceneInfo, num_points: int, seed: int = 0) -> PointCloud:

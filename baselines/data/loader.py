@@ -6,12 +6,14 @@ import logging
 from pathlib import Path
 from typing import Callable
 
-from .colmap import find_model_dir, read_colmap
+from .colmap import read_colmap
+from .detection import detect_layout
 from .dnerf import read_dnerf
 from .errors import DatasetError
 from .hypernerf import read_hypernerf
-from .nvidia import read_nvidia
+from .nvidia import POSES_FILE, check_poses_bounds, read_nvidia
 from .scene_info import SceneInfo
+from .split_check import warn_split_overlap
 
 log = logging.getLogger(__name__)
 
@@ -24,26 +26,9 @@ READERS: dict[str, Callable[..., SceneInfo]] = {
 _COMMON_ARGUMENTS = ("source_path", "images", "resolution", "eval", "white_background", "llffhold")
 ALIASES = {"llff": "nvidia", "dynamicnerf": "nvidia", "blender": "dnerf", "nerfies": "hypernerf"}
 
-# What identifies each layout, in the order tried: the first match wins. poses_bounds.npy comes
-# before sparse/ because LLFF-style scenes often keep the COLMAP model they were posed with.
-SIGNATURES = (
-    ("hypernerf", "dataset.json + scene.json", lambda p: (p / "dataset.json").is_file() and (p / "scene.json").is_file()),
-    ("dnerf", "transforms_train.json", lambda p: (p / "transforms_train.json").is_file()),
-    ("nvidia", "poses_bounds.npy", lambda p: (p / "poses_bounds.npy").is_file()),
-    ("colmap", "sparse/0/cameras.{bin,txt}", lambda p: find_model_dir(p) is not None),
-)
-
-
 def detect_dataset_type(source_path: Path | str) -> str:
-    """The layout of `source_path`; `DatasetError` listing what was looked for when none matches."""
-    source = Path(source_path)
-    if not source.is_dir():
-        raise DatasetError(f"dataset folder not found: {source}")
-    for name, _, matches in SIGNATURES:
-        if matches(source):
-            return name
-    looked_for = "; ".join(f"{what} ({name})" for name, what, _ in SIGNATURES)
-    raise DatasetError(f"{source} matches no known dataset layout; looked for: {looked_for}")
+    """The layout of `source_path` (see detection.py for the preference rule)."""
+    return detect_layout(source_path).kind
 
 
 def _check_arguments(resolution: int | float, llffhold: int) -> None:
@@ -75,8 +60,10 @@ def load_scene(source_path: Path | str, dataset_type: str | None = "auto", image
     """
     source = Path(source_path)
     _check_arguments(resolution, llffhold)
+    detection = None
     if dataset_type is None or dataset_type == "auto":
-        kind = detect_dataset_type(source)
+        detection = detect_layout(source)
+        kind = detection.kind
         log.info("detected %s dataset in %s", kind, source)
     else:
         kind = ALIASES.get(str(dataset_type).lower(), str(dataset_type).lower())
@@ -92,5 +79,11 @@ def load_scene(source_path: Path | str, dataset_type: str | None = "auto", image
     if unknown:
         raise DatasetError(f"reader_options {unknown} are not options of the {kind} reader "
                            f"(it accepts: {', '.join(sorted(accepted)) or 'none'})")
-    return reader(source, images=images, resolution=resolution, eval=eval,
-                  white_background=white_background, llffhold=llffhold, **options)
+    if kind != "nvidia" and (source / POSES_FILE).is_file():
+        check_poses_bounds(source, images)  # a NaN there must not pass unnoticed, whatever reads the folder
+    scene = reader(source, images=images, resolution=resolution, eval=eval,
+                   white_background=white_background, llffhold=llffhold, **options)
+    chosen = detection.as_dict() if detection else {"picked": kind, "because": "--dataset_type"}
+    scene.metadata["layout_detection"] = chosen
+    warn_split_overlap(scene)
+    return scene

@@ -91,6 +91,17 @@ def find_point_file(source: Path, candidates: tuple[str, ...] = POINT_FILES) -> 
     return None
 
 
+def check_poses_bounds(source: Path, images: str = "images") -> None:
+    """Validate ``<source>/poses_bounds.npy`` (finite, [N, 17], sane bounds) and, when the image
+    folder exists, its count against the images; one-line `DatasetError` naming the file."""
+    viewmats, _, _ = read_poses_bounds(source / POSES_FILE)
+    folder = source / images
+    if folder.is_dir():
+        count = len(list_files(folder, IMAGE_EXTENSIONS))
+        if count != len(viewmats):
+            raise DatasetError(f"{source / POSES_FILE} has {len(viewmats)} poses but {folder} holds {count} images")
+
+
 def read_nvidia(source_path: Path | str, images: str = "images", resolution: int | float = -1,
                 eval: bool = False, white_background: bool = False, llffhold: int = 8) -> SceneInfo:
     """Read a DynamicNeRF/LLFF-layout scene (see the module docstring).

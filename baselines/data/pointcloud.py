@@ -122,6 +122,25 @@ def read_point_file(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarr
     raise DatasetError(f"unsupported point file {path} (expected .ply, .npy or a COLMAP model)")
 
 
+def project_to_pixels(points: np.ndarray, camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where points [P,3] land in ``camera``'s image.
+
+    Returns (in_front [P] bool, inside [P] bool: in front and within the image, col [P], row [P]
+    int64 pixel indices, -1 for points behind the camera).
+    """
+    viewmat = camera.viewmat.detach().cpu().double().numpy()
+    K = camera.K.detach().cpu().double().numpy()
+    cam_pts = np.asarray(points, np.float64) @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = cam_pts[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = (cam_pts @ K.T)[:, :2] / z[:, None]
+    in_front = (z > 1e-6) & np.isfinite(uv).all(axis=1)
+    uv = np.clip(np.where(in_front[:, None], uv, -1.0), -1.0, 2.0**30)  # warning-free int cast
+    col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+    inside = in_front & (col >= 0) & (col < camera.width) & (row >= 0) & (row < camera.height)
+    return in_front, inside, col, row
+
+
 def sample_colours(points: np.ndarray, cameras: Sequence, max_views: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """Colour points [P,3] from the images of `cameras` (those with an image).
 
@@ -136,16 +155,7 @@ def sample_colours(points: np.ndarray, cameras: Sequence, max_views: int = 8) ->
         views = [views[i] for i in np.linspace(0, len(views) - 1, max_views).round().astype(int)]
     samples = np.full((len(views), len(points), 3), np.nan, np.float32)
     for v, cam in enumerate(views):
-        viewmat = cam.viewmat.detach().cpu().double().numpy()
-        K = cam.K.detach().cpu().double().numpy()
-        cam_pts = points @ viewmat[:3, :3].T + viewmat[:3, 3]
-        z = cam_pts[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            uv = (cam_pts @ K.T)[:, :2] / z[:, None]
-        in_front = (z > 1e-6) & np.isfinite(uv).all(axis=1)
-        uv = np.clip(np.where(in_front[:, None], uv, -1.0), -1.0, 2.0**30)  # warning-free int cast
-        col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
-        ok = in_front & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+        _, ok, col, row = project_to_pixels(points, cam)
         image = cam.image.detach().cpu().numpy()
         samples[v, ok] = image[row[ok], col[ok]]
     found = np.isfinite(samples[..., 0]).any(axis=0)

@@ -89,7 +89,8 @@ def build_trainer(argv: list[str]) -> Trainer:
     model_path = Path(args.model.model_path or REPO_ROOT / "output" / name)
     args.model.model_path = str(model_path)
     model_path.mkdir(parents=True, exist_ok=True)
-    write_cfg_args(model_path, args, {"_components": {name: sorted(active) for name, active in components.items()}})
+    write_cfg_args(model_path, args, {"_components": {name: sorted(active) for name, active in components.items()},
+                                       "_dataset_layout": scene.metadata.get("layout_detection")})
 
     plugins: list[Plugin] = [
         cls({g: args.extra[g] for g in cls.param_groups}, components[cls.name]) for cls in plugin_classes

@@ -33,6 +33,7 @@ from torch import Tensor
 
 from baselines.fourdgs.deformation import check_deformation_state
 from baselines.fourdgs.gaussian_model import GaussianModel
+from baselines.fourdgs.numpy_globals import allow_numpy_scalars
 
 PLY_FILE = "point_cloud.ply"
 DEFORMATION_FILE = "deformation.pth"
@@ -94,7 +95,8 @@ def _torch_load(path: Path, map_location: Any, trusted: bool = False) -> Any:
     if not path.is_file():
         raise ValueError(f"{path}: file not found")
     try:
-        return torch.load(path, map_location=map_location, weights_only=not trusted)
+        with allow_numpy_scalars():  # 4DGS checkpoints hold numpy.float64 learning rates
+            return torch.load(path, map_location=map_location, weights_only=not trusted)
     except Exception as err:  # torch raises many types for corrupt/foreign files
         raise ValueError(f"{path}: cannot be read as a torch file ({type(err).__name__}: {err})") from None
 

@@ -14,18 +14,22 @@ Per iteration (stage-local, starting at 1 in each stage as in 4DGS), while
    criterion (20 px) applies once ``iteration > opacity_reset_interval``;
 5. opacity reset when ``iteration % opacity_reset_interval == 0``.
 
+Ours: a ``FinalStretch`` (final_stretch.py) may forbid steps 3-5 near a saved iteration; the
+record lists what was skipped.
+
 4DGS's ``add_point``/``grow`` branch is not reproduced: ``GaussianModel.grow`` does not exist in
 4DGS, so that branch cannot run there either.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 from torch import Tensor
 
+from baselines.fourdgs.final_stretch import FinalStretch
 from baselines.fourdgs.gaussian_model import GaussianModel
 
 DENSIFY_MAX_GAUSSIANS = 360_000
@@ -48,6 +52,7 @@ class DensificationRecord:
     densify_threshold: float | None = None
     opacity_threshold: float | None = None
     num_gaussians: int = 0
+    skipped: list[str] = field(default_factory=list)  # steps due but forbidden by the final-stretch rule
 
 
 def densification_thresholds(opt: Any, iteration: int, stage: str) -> tuple[float, float]:
@@ -81,6 +86,7 @@ def densification_step(
     max_gaussians: int = DENSIFY_MAX_GAUSSIANS,
     prune_min_gaussians: int = PRUNE_MIN_GAUSSIANS,
     protect: Tensor | None = None,
+    stretch: FinalStretch | None = None,
 ) -> DensificationRecord:
     """Run 4DGS's densification block for one iteration (call after backward, before the step).
 
@@ -94,7 +100,9 @@ def densification_step(
         protect: [N] bool, Gaussians never pruned this iteration (ours: the plugins'
             `protected_gaussians`); clones and split children of a protected Gaussian are
             protected too.
+        stretch: the steps the final-stretch rule allows this iteration (default: all).
     """
+    stretch = stretch or FinalStretch()
     record = DensificationRecord(iteration=iteration, num_gaussians=model.num_gaussians)
     if iteration >= opt.densify_until_iter:
         return record
@@ -113,11 +121,14 @@ def densification_step(
     grad_threshold, opacity_threshold = densification_thresholds(opt, iteration, stage)
     record.densify_threshold, record.opacity_threshold = grad_threshold, opacity_threshold
     size_threshold = SCREEN_SIZE_THRESHOLD if iteration > opt.opacity_reset_interval else None
-    if (
+    densify_due = (
         iteration > opt.densify_from_iter
         and iteration % opt.densification_interval == 0
         and model.num_gaussians < max_gaussians
-    ):
+    )
+    if densify_due and not stretch.allow_densify:
+        record.skipped.append("densify")
+    elif densify_due:
         if protect is not None:
             # Follow the protected rows through clone/split (both keep their parent's buffers).
             model.register_gaussian_buffer("_protect", protect.float().unsqueeze(1))
@@ -125,14 +136,19 @@ def densification_step(
         record.densify_ran = True
         if protect is not None:
             protect = model.pop_gaussian_buffer("_protect").squeeze(1) > 0.5
-    if (
+    prune_due = (
         iteration > opt.pruning_from_iter
         and iteration % opt.pruning_interval == 0
         and model.num_gaussians > prune_min_gaussians
-    ):
+    )
+    if prune_due and not stretch.allow_densify:
+        record.skipped.append("prune")
+    elif prune_due:
         record.pruned = model.prune(opacity_threshold, cameras_extent, size_threshold, protect=protect)
         record.prune_ran = True
-    if iteration % opt.opacity_reset_interval == 0:
+    if iteration % opt.opacity_reset_interval == 0 and not stretch.allow_reset:
+        record.skipped.append("opacity_reset")
+    elif iteration % opt.opacity_reset_interval == 0:
         model.reset_opacity()
         record.opacity_reset = True
     record.num_gaussians = model.num_gaussians

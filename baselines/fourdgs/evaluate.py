@@ -55,6 +55,14 @@ def to_uint8(image: Tensor) -> np.ndarray:
     return np.ascontiguousarray(rgb[..., ::-1])
 
 
+def pad_to_even(frame: np.ndarray) -> np.ndarray:
+    """[H, W, C] -> [H + H % 2, W + W % 2, C], the last row/column repeated (video encoders need even sizes)."""
+    h, w = frame.shape[:2]
+    if h % 2 == 0 and w % 2 == 0:
+        return frame
+    return cv2.copyMakeBorder(frame, 0, h % 2, 0, w % 2, cv2.BORDER_REPLICATE)
+
+
 def depth_to_color(depth: Tensor, alpha: Tensor) -> np.ndarray:
     """Colour-mapped inverse depth ([H, W, 1] each) -> [H, W, 3] uint8 BGR; empty pixels black."""
     inv = torch.where(alpha > 0.5, 1.0 / depth.clamp(min=1e-6), torch.zeros_like(depth))[..., 0]
@@ -160,18 +168,22 @@ def render_video(
     model: GaussianModel, cameras: Sequence[Camera], stage: str, background: Tensor, path: Path,
     backend: str = "auto", fps: int = 30,
 ) -> Path:
-    """Render cameras in order into an mp4 (OpenCV 'mp4v'), written to a temp name then renamed."""
+    """Render cameras in order into an mp4 (OpenCV 'mp4v'), written to a temp name then renamed.
+
+    The encoder needs even sizes and would crop an odd row/column (240x135 -> 240x134): odd-sized
+    frames are padded instead (edge pixels repeated), so every rendered pixel is in the video.
+    """
     if not cameras:
         raise ValueError("render_video needs at least one camera")
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.stem + ".tmp" + path.suffix)
     w, h = cameras[0].width, cameras[0].height
-    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w + w % 2, h + h % 2))
     if not writer.isOpened():
         raise OSError(f"OpenCV could not open a video writer for {path}")
     try:
         for cam in cameras:
-            writer.write(to_uint8(render(model, cam, stage, background, backend).image))
+            writer.write(pad_to_even(to_uint8(render(model, cam, stage, background, backend).image)))
     finally:
         writer.release()
     tmp.replace(path)

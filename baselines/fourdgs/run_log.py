@@ -7,11 +7,12 @@ are flushed as written, so a killed run keeps its log.
 from __future__ import annotations
 
 import json
+import sys
 import time
 from collections import defaultdict
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import IO, Any, Iterator
 
 from tqdm import tqdm
 
@@ -37,20 +38,47 @@ class StageTimer:
         return {k: 1000.0 * self.total[k] / max(1, self.count[k]) for k in self.total}
 
 
+PRINTED_EVENTS = ("test", "saved", "checkpoint", "resumed", "loaded", "train_end", "final_stretch")
+PLAIN_PROGRESS_EVERY = 100  # iterations between progress lines when stderr is not a terminal
+
+
+def _is_terminal(stream: IO[str]) -> bool:
+    isatty = getattr(stream, "isatty", None)
+    return bool(isatty and isatty())
+
+
 class _Progress:
-    def __init__(self, total: int, initial: int, desc: str, quiet: bool) -> None:
-        self.bar = None if quiet else tqdm(total=total, initial=initial, desc=desc, dynamic_ncols=True)
+    """A tqdm bar on a terminal; elsewhere (log files, CI) one plain line every N iterations.
+
+    A bar redrawn with carriage returns floods a log file; ``every`` (default
+    PLAIN_PROGRESS_EVERY) sets the spacing of the plain lines, the stage's last iteration included.
+    """
+
+    def __init__(self, total: int, initial: int, desc: str, quiet: bool, stream: IO[str] | None = None,
+                 every: int = PLAIN_PROGRESS_EVERY) -> None:
+        self.stream = stream if stream is not None else sys.stderr
+        self.total, self.desc, self.every = total, desc, max(1, every)
+        plain = quiet or not _is_terminal(self.stream)
+        self.bar = None if plain else tqdm(total=total, initial=initial, desc=desc, dynamic_ncols=True,
+                                           file=self.stream)
+        self.quiet = quiet
         self.ema_loss: float | None = None
 
     def update(self, ctx: Any) -> None:
-        if self.bar is None:
+        if self.quiet:
             return
         loss = float(ctx.metrics.get("loss", float("nan")))
         self.ema_loss = loss if self.ema_loss is None else 0.4 * loss + 0.6 * self.ema_loss
+        postfix = dict(loss=f"{self.ema_loss:.5f}", psnr=f"{ctx.metrics.get('psnr', 0):.2f}",
+                       points=ctx.metrics.get("num_gaussians", 0))
+        if self.bar is None:
+            if ctx.iteration % self.every == 0 or ctx.iteration == self.total:
+                fields = " ".join(f"{k}={v}" for k, v in postfix.items())
+                print(f"[{self.desc}] {ctx.iteration}/{self.total} {fields}", file=self.stream, flush=True)
+            return
         self.bar.update(1)
         if ctx.iteration % 10 == 0:
-            self.bar.set_postfix(loss=f"{self.ema_loss:.5f}", psnr=f"{ctx.metrics.get('psnr', 0):.2f}",
-                                 points=ctx.metrics.get("num_gaussians", 0))
+            self.bar.set_postfix(**postfix)
 
     def close(self) -> None:
         if self.bar is not None:
@@ -67,8 +95,9 @@ class RunLog:
         self.last_time = time.perf_counter()
         self.last_iteration = 0
 
-    def progress(self, total: int, initial: int, desc: str) -> _Progress:
-        return _Progress(total, initial, desc, self.quiet)
+    def progress(self, total: int, initial: int, desc: str, **kwargs: Any) -> _Progress:
+        """A progress display for one stage (kwargs: ``stream``, ``every``; see _Progress)."""
+        return _Progress(total, initial, desc, self.quiet, **kwargs)
 
     def _write(self, record: dict[str, Any]) -> None:
         self.file.write(json.dumps(record, default=str) + "\n")
@@ -76,7 +105,7 @@ class RunLog:
 
     def event(self, kind: str, **fields: Any) -> None:
         self._write({"kind": kind, "time": time.time(), **fields})
-        if not self.quiet and kind in ("test", "saved", "checkpoint", "resumed", "loaded", "train_end"):
+        if not self.quiet and kind in PRINTED_EVENTS:
             tqdm.write(f"[{kind}] " + ", ".join(f"{k}={_short(v)}" for k, v in fields.items()))
 
     def iteration(self, ctx: Any, every: int) -> None:

@@ -35,6 +35,7 @@ from .checkpoint import (
     save_training_state,
 )
 from .densification import densification_step
+from .final_stretch import final_stretch
 from .gaussian_model import GaussianModel
 from .hooks import HookRunner, TrainContext
 from .plugins import Plugin
@@ -84,6 +85,8 @@ class Trainer:
         model_path: output directory (created).
     """
 
+    QUICK_EVAL_VIEWS = 8  # views per split of the intermediate test events
+
     def __init__(self, args: Any, scene: SceneInfo, plugins: list[Plugin], model_path: Path) -> None:
         self.args = args
         self.opt = args.opt
@@ -114,7 +117,8 @@ class Trainer:
         """Initial point cloud and model (plugins may replace either), before any training."""
         ctx = self.ctx
         self.hooks.call("on_scene_loaded", ctx)
-        cloud, source = initial_point_cloud(ctx.scene, seed=self.opt.seed)
+        cloud, source = initial_point_cloud(ctx.scene, seed=self.opt.seed,
+                                            check_dataset_points=not self.args.model.force_dataset_points)
         ctx.point_cloud, ctx.point_cloud_source = cloud, source
         replacement = self.hooks.first("initial_point_cloud", ctx)
         if replacement is not None:
@@ -172,9 +176,11 @@ class Trainer:
             self.train_seconds += time.perf_counter() - wall
             self.train_cpu_seconds += time.process_time() - cpu
             bar.update(ctx)
-            if iteration in self.run.test_iterations or (stage == "fine" and iteration == total):
+            final = stage == "fine" and iteration == total
+            if iteration in self.run.test_iterations or final:
+                # the final figure is over every test view: the one results.json reports
                 self.run_log.event("test", stage=stage, iteration=iteration, train_seconds=self.train_seconds,
-                                   train_cpu_seconds=self.train_cpu_seconds, **self.quick_eval())
+                                   train_cpu_seconds=self.train_cpu_seconds, **self.quick_eval(all_test_views=final))
             if iteration in self.run.save_iterations or iteration == total:
                 self.save_point_cloud()
             if iteration in self.run.checkpoint_iterations:
@@ -298,22 +304,31 @@ class Trainer:
             torch.stack(grads).sum(dim=0), cam.width, cam.height,
             max_gaussians=self.opt.densify_max_gaussians, prune_min_gaussians=self.opt.prune_min_gaussians,
             protect=protect,
+            stretch=final_stretch(self.opt, ctx.iteration, ctx.stage, ctx.stage_iterations, self.run.save_iterations),
         )
         record = ctx.densify_record
+        if record.skipped:
+            self.run_log.event("final_stretch", stage=ctx.stage, iteration=ctx.iteration, skipped=record.skipped,
+                               reason="kept (saved/final) iteration ahead: no opacity reset or densification")
         if record.densify_ran or record.prune_ran or record.opacity_reset:
             self.hooks.call("post_densify", ctx)
 
     # ------------------------------------------------------------------ evaluation
     @torch.no_grad()
-    def quick_eval(self, max_views: int = 8) -> dict[str, float]:
-        """Mean PSNR / L1 on (up to max_views of) the test cameras and the training cameras."""
+    def quick_eval(self, max_views: int | None = None, all_test_views: bool = False) -> dict[str, float]:
+        """Mean PSNR / L1 on (up to max_views of) the test cameras and the training cameras.
+
+        ``all_test_views``: every test camera, so test_psnr equals evaluate_cameras' mean PSNR.
+        """
+        max_views = max_views or self.QUICK_EVAL_VIEWS
         out: dict[str, float] = {}
         for split, cams in (("test", self.test_cameras), ("train", self.train_cameras)):
             if not cams:
                 continue
-            step = max(1, len(cams) // max_views)
+            count = len(cams) if split == "test" and all_test_views else max_views
+            step = max(1, len(cams) // count)
             values = []
-            for cam in cams[::step][:max_views]:
+            for cam in cams[::step][:count]:
                 view = render(self.ctx.model, cam, self.ctx.stage, self.ctx.background, self.pipe.backend)
                 values.append((float(psnr(view.image.clamp(0, 1), cam.image)), float((view.image - cam.image).abs().mean())))
             out[f"{split}_psnr"] = sum(v[0] for v in values) / len(values)
@@ -367,7 +382,10 @@ class Trainer:
         path = Path(spec)
         if path.is_dir():
             pc_dir = latest_point_cloud_dir(path)
-            self.load_model_from(pc_dir)
+            try:
+                self.load_model_from(pc_dir)
+            except ValueError as err:
+                raise ValueError(f"{err}; {config_hint(path)}") from None
             # A 4DGS output is a trained model: continue in the fine stage from iteration 0.
             return {"stage": "fine", "point_cloud_dir": pc_dir}
         if not path.is_file():
@@ -393,6 +411,18 @@ class Trainer:
         self.hooks.load_state_dict(extra.get("plugins") or {})
         self.run_log.event("resumed", path=str(resume["path"]), stage=state.stage, iteration=state.iteration)
         return int(state.iteration)
+
+
+def config_hint(start_checkpoint: Path) -> str:
+    """What to pass when an old output's files do not fit the model this run built."""
+    from arguments.saved import model_dir_of_checkpoint, read_saved_configs
+
+    model_dir = model_dir_of_checkpoint(start_checkpoint) or start_checkpoint
+    configs = read_saved_configs(model_dir)
+    if configs:
+        return f"that run was trained with --configs {' '.join(configs)} (from {model_dir}): pass it"
+    return (f"{model_dir} records no config file: pass the --configs file it was trained with "
+            "(e.g. arguments/dnerf/<scene>.py)")
 
 
 def latest_point_cloud_dir(path: Path) -> Path:
