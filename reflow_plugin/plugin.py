@@ -3,8 +3,9 @@
     python train.py -s data/nvidia/Skating --plugin reflow [--disable full_flow,cam_flow]
 
 Components (``--disable`` / ``--enable``, the paper's ablation switches):
-    comp_init   complete canonical space (part 2, reflow_plugin.canonical; reported as unavailable
-                when that package is missing, and the run says which initial cloud it used)
+    comp_init   complete canonical space (part 2, reflow_plugin.canonical): its fused static cloud plus
+                the keyframe seeds of `separation` (depth aligned to that cloud); the paper's
+                reference-frame dynamic cloud with --dynamic_keyframes 1 or without separation
     separation  static/dynamic separated deformation + dynamic points seeded in the motion masks
     full_flow   full flow matching (L_mc + L_cr on the pair's rendered full flows)
     cam_flow    camera flow matching on static pixels

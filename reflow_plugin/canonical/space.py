@@ -85,7 +85,7 @@ def options_from_params(p: Any) -> CanonicalOptions:
     return CanonicalOptions(provider=p.canonical_provider, align=p.canonical_align, clip_len=p.canonical_clip_len,
                             window=p.canonical_window, voxel=p.canonical_voxel, iterations=p.canonical_iters,
                             cache=p.canonical_cache, shift=p.canonical_shift,
-                            dynamic_points=p.seed_points or 1)
+                            dynamic_points=p.seed_points)
 
 
 def make_provider(cameras: Sequence[Camera], source_path: Path | None, options: CanonicalOptions) -> PointmapProvider:
