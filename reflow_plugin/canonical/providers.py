@@ -229,17 +229,24 @@ class FlowProvider(PointmapProvider):
         ok = inside & (lam_i > 0) & (lam_j > 0) & (np.abs(det) > 1e-12) & np.isfinite(points).all(-1)
         return points, np.where(ok, conf, 0.0)
 
-    def _partner(self, n: int) -> int:
-        return n + 1 if n + 1 < len(self.cameras) else n - 1
-
     def depth(self, n: int, full: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Triangulated with both neighbours (n - 1, n + 1); per pixel the more confident one."""
         if len(self.cameras) < 2:
             raise ValueError("flow provider: a single frame has no flow to triangulate")
-        points, conf = self.triangulate(n, self._partner(n), full)
-        z = to_camera(points, self.viewmats[n])[..., 2]
-        good = conf > 0
-        fill = float(np.median(z[good])) if good.any() else 1.0
-        return np.where(good, z, fill), conf
+        best_z, best_c = None, None
+        for m in (n - 1, n + 1):
+            if not 0 <= m < len(self.cameras):
+                continue
+            points, conf = self.triangulate(n, m, full)
+            z = to_camera(points, self.viewmats[n])[..., 2]
+            if best_z is None:
+                best_z, best_c = z, conf
+            else:
+                better = conf > best_c
+                best_z, best_c = np.where(better, z, best_z), np.where(better, conf, best_c)
+        good = best_c > 0
+        fill = float(np.median(best_z[good])) if good.any() else 1.0
+        return np.where(good, best_z, fill), best_c
 
     def pair(self, i: int, j: int) -> PairPrediction:
         Pi, Ci = self.triangulate(i, j)

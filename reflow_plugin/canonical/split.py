@@ -22,16 +22,20 @@ from .alignment import FrameState
 from .geometry import backproject, to_world
 from .providers import PointmapProvider
 
+MIN_CONFIDENCE = 0.5  # static points: pixels whose provider confidence is above this (flow: fb error ~1 px)
+
 
 def _empty() -> PointCloud:
     return PointCloud(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
 
 
-def aligned_depth(provider: PointmapProvider, n: int, state: FrameState, full: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """(metric depth [h, w] with NaN where unusable, valid [h, w] bool) of frame n."""
+def aligned_depth(provider: PointmapProvider, n: int, state: FrameState, full: bool = False,
+                  min_confidence: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(metric depth [h, w] with NaN where unusable, valid [h, w] bool) of frame n: confidence above
+    `min_confidence`, finite positive depth."""
     depth, conf = provider.depth(n, full)
     z = state.scale * np.asarray(depth, np.float64) + state.shift
-    valid = np.isfinite(z) & (z > 0) & (np.nan_to_num(np.asarray(conf, np.float64)) > 0)
+    valid = np.isfinite(z) & (z > 0) & (np.nan_to_num(np.asarray(conf, np.float64)) > min_confidence)
     return np.where(valid, z, np.nan), valid
 
 
@@ -52,7 +56,7 @@ def static_cloud(provider: PointmapProvider, states: Mapping[int, FrameState],
     rows, cols = provider.grid()
     points, colours = [], []
     for n, state in sorted(states.items()):
-        z, valid = aligned_depth(provider, n, state)
+        z, valid = aligned_depth(provider, n, state, min_confidence=MIN_CONFIDENCE)
         if masks is not None:
             valid &= ~masks[n][np.ix_(rows, cols)]
         cam = backproject(np.nan_to_num(z), provider.K[n], rows, cols)
