@@ -207,6 +207,10 @@ class ReFlowPlugin(Plugin):
         space.write_ply(self._run_dir(ctx))
         self.info["canonical"] = space.report
         static, cameras = space.static, ctx.train_cameras
+        if len(static) == 0:  # every pixel masked or unconfident: the host's cloud stands in
+            log.warning("canonical space: no static point; the host's %s cloud is used as the static cloud",
+                        ctx.point_cloud_source)
+            static = ctx.point_cloud
         self.reference = space.reference_frame
         keyframe_seeds = (masks is not None and self.reference is not None and self.is_enabled("separation")
                           and self.p.seed_points > 0 and self.p.dynamic_keyframes > 1)
