@@ -41,7 +41,7 @@ from scipy.sparse.csgraph import breadth_first_order, connected_components, mini
 from tqdm import tqdm
 
 from .geometry import rays as grid_rays
-from .geometry import relative, robust_umeyama, rotvec_to_matrix, to_camera, to_world, umeyama
+from .geometry import relative, robust_umeyama, rotvec_to_matrix, to_camera, to_world
 from .providers import PairPrediction, PointmapProvider
 
 log = logging.getLogger(__name__)
@@ -160,7 +160,8 @@ def _initial_states(frames: dict[int, _Frame], pairs: dict[tuple[int, int], Pair
     for comp in range(count):
         members = [order[k] for k in np.flatnonzero(component == comp)]
         anchored = [n for n in members if n in fixed]
-        root = anchored[0] if anchored else (members[0] if free_poses else max(members, key=lambda n: strength[index[n]]))
+        best = max(members, key=lambda n: strength[index[n]])
+        root = anchored[0] if anchored else (members[0] if free_poses else best)
         if len(members) == 1 and root not in fixed:
             lonely.append(root)
             continue
@@ -246,7 +247,8 @@ def _gather(provider: PointmapProvider, frames: Sequence[int], edges: Sequence[t
     pairs, edge_weight, dropped = {}, {}, []
     for i, j in edges:
         pair = provider.pair(i, j).sanitized()
-        sides = [float((pair.C_ii.reshape(-1) * data[i].weight).sum()), float((pair.C_ji.reshape(-1) * data[j].weight).sum())]
+        sides = [float((pair.C_ii.reshape(-1) * data[i].weight).sum()),
+                 float((pair.C_ji.reshape(-1) * data[j].weight).sum())]
         total = sum(sides)
         if not min(sides) > 0:  # an edge needs evidence on both of its frames
             dropped.append([i, j])

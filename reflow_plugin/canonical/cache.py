@@ -32,7 +32,8 @@ ARRAYS = ("static_points", "static_colors", "dynamic_points", "dynamic_colors")
 def cache_key(cameras: Sequence[Camera], masks: Sequence[np.ndarray] | None, provider_key: str,
               settings: Mapping[str, Any]) -> str:
     """16 hex digits of sha256 over cameras (poses, images), masks, provider and settings."""
-    h = hashlib.sha256(f"canonical v{CACHE_VERSION}|{provider_key}|{json.dumps(dict(settings), sort_keys=True)}".encode())
+    text = json.dumps(dict(settings), sort_keys=True)
+    h = hashlib.sha256(f"canonical v{CACHE_VERSION}|{provider_key}|{text}".encode())
     h.update(camera_key(cameras, False).encode())
     for mask in masks or []:
         h.update(np.packbits(np.asarray(mask, bool)).tobytes())

@@ -36,7 +36,7 @@ import numpy as np
 
 from baselines.data import Camera
 
-from .geometry import backproject, grid, relative, to_camera, to_world
+from .geometry import backproject, grid, relative, to_camera
 
 MIN_ANGLE_DEG = 2.0
 
@@ -115,7 +115,7 @@ class DepthProvider(PointmapProvider):
         self.source, self.source_path = source, None if source_path is None else Path(source_path)
         self.noise, self.drift, self.outliers, self.seed = noise, drift, outliers, seed
         rng = np.random.default_rng(seed)
-        self.scales = np.exp(drift * rng.standard_normal(len(self.cameras))) if drift > 0 else np.ones(len(self.cameras))
+        self.scales = np.exp(drift * rng.standard_normal(len(self.cameras)))  # [N] per-frame scale drift
         self._cache: dict[int, np.ndarray] = {}
         if source == "disparity":
             missing = [c.image_name for c in self.cameras if c.disparity is None]
@@ -255,4 +255,4 @@ class FlowProvider(PointmapProvider):
         return PairPrediction(to_camera(Pi, V), to_camera(Pj, V), Ci, Cj).sanitized()
 
 
-__all__ = ["PairPrediction", "PointmapProvider", "DepthProvider", "FlowProvider", "to_world"]
+__all__ = ["PairPrediction", "PointmapProvider", "DepthProvider", "FlowProvider"]

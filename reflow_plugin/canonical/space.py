@@ -160,7 +160,8 @@ def build_canonical_space(scene: Any, masks: Sequence[np.ndarray] | None, option
               "seconds": {"alignment": alignment["seconds"], "split": time.perf_counter() - split_start,
                           "total": time.perf_counter() - start},
               "cache": "miss" if folder is not None else "off", "key": key,
-              "poses": {cameras[n].image_name: states[n].viewmat.tolist() for n in frames} if options.free_poses else None}
+              "poses": ({cameras[n].image_name: states[n].viewmat.tolist() for n in frames}
+                        if options.free_poses else None)}
     cache.store(folder, key, {"static_points": static.points, "static_colors": static.colors,
                               "dynamic_points": dynamic.points, "dynamic_colors": dynamic.colors}, reference, report)
     log.info("canonical space: %d static + %d dynamic points (%s, %s)", len(static), len(dynamic), provider.name,
