@@ -202,7 +202,9 @@ class ReFlowPlugin(Plugin):
         separation (measured on the skating scene: the single reference cloud alone misses the skater)."""
         from .canonical import build_canonical_space, options_from_params
 
-        space = build_canonical_space(ctx.scene, masks, options_from_params(self.p),
+        options = options_from_params(self.p)
+        options.device = str(ctx.device)
+        space = build_canonical_space(ctx.scene, masks, options,
                                       cache_dir=self._run_dir(ctx) / "canonical", progress=not ctx.args.run.quiet)
         space.write_ply(self._run_dir(ctx))
         self.info["canonical"] = space.report

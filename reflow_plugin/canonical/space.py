@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -51,7 +51,7 @@ class CanonicalOptions:
     drift: float = 0.0
     outliers: float = 0.0
     seed: int = 0
-    device: str = field(default="cpu", metadata={"cache": False})
+    device: str = "cpu"  # where the alignment runs (the plugin passes the training device; not in the cache key)
 
 
 @dataclass
