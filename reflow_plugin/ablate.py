@@ -8,7 +8,7 @@ Rows (paper Table 4, ids as in the paper; `--rows` takes the names):
 
     baseline        4DGS
     fullfm_only     #1  4DGS + full flow matching (no canonical init, no separation)
-    wo_align        #2  canonical space without alignment (part 2's `--canonical_wo_align`)
+    wo_align        #2  canonical space without alignment (part 2's `--no-canonical_align`)
     comp_init       #3  complete canonical space only
     sep             #4  + static/dynamic separation
     sep_fullfm      #5  + full flow matching
@@ -48,7 +48,7 @@ ROWS: dict[str, tuple[str, list[str]]] = {
     "baseline": ("Baseline (4DGS)", []),
     "fullfm_only": ("#1 FullFM only", ["--plugin", "reflow", "--disable", "comp_init,separation,cam_flow"]),
     "wo_align": ("#2 w/o align", ["--plugin", "reflow", "--disable", "separation,full_flow,cam_flow",
-                                  "--canonical_wo_align"]),
+                                  "--no-canonical_align"]),
     "comp_init": ("#3 CompInit", ["--plugin", "reflow", "--disable", "separation,full_flow,cam_flow"]),
     "sep": ("#4 + Sep", ["--plugin", "reflow", "--disable", "full_flow,cam_flow"]),
     "sep_fullfm": ("#5 + FullFM", ["--plugin", "reflow", "--disable", "cam_flow"]),

@@ -17,6 +17,7 @@ from arguments import param
 LABEL_SOURCES = ("auto", "masks", "estimate", "none")
 UPGRADE_LABELS = ("auto", "motion", "checkpoint")
 STATIC_DECODERS = ("none", "triplane")
+CANONICAL_PROVIDERS = ("auto", "depth", "flow")
 
 
 def _non_negative(value: float) -> str | None:
@@ -125,6 +126,25 @@ class ReFlowParams:
     upgrade_motion_threshold: float = param(0.005, "a loaded 4DGS Gaussian is dynamic when its centre moves more "
                                                    "than this fraction of the scene extent from its time average",
                                             check=_non_negative)
+    # --- complete canonical space (paper 3.2.1, appendix A.1; reflow_plugin.canonical) ---
+    canonical_provider: str = param("auto", "pointmap provider of the canonical space: depth (the dataset's "
+                                            "disparity), flow (DIS flow triangulated with the cameras), auto "
+                                            "(depth when every frame has disparity, else flow)",
+                                    choices=CANONICAL_PROVIDERS)
+    canonical_align: bool = param(True, "global coarse-to-fine alignment of the pointmaps; --no-canonical_align "
+                                        "merges the raw per-frame pointmaps (the paper's 'w/o align' ablation)")
+    canonical_clip_len: int = param(25, "frames per clip of the coarse-to-fine alignment (the first of each is "
+                                        "a keyframe; paper: 25-30)", check=_positive)
+    canonical_window: int = param(4, "ours: inside a clip, frames at most this far apart are paired (plus "
+                                     "every frame with its keyframe)", check=_positive)
+    canonical_voxel: float = param(0.01, "voxel side of the fused static cloud as a fraction of the median "
+                                         "depth (0 = no downsampling)", check=_non_negative)
+    canonical_iters: int = param(300, "Adam iterations of each alignment (keyframe graph, each clip)",
+                                 check=_non_negative)
+    canonical_shift: bool = param(False, "also fit a per-frame depth shift (besides the scale); off by default: "
+                                         "with noisy pointmaps it trades against the scale and flattens depth")
+    canonical_cache: bool = param(True, "reuse the canonical space cached in <model>/reflow/canonical when the "
+                                        "dataset, masks and settings are unchanged")
     # --- diagnostics ---
     flow_vis_every: int = param(500, "write a flow-matching panel [I_a | I_b warped | I_b | error | flow] "
                                      "every this many fine iterations (0 = never)", check=_non_negative)

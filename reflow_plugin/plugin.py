@@ -3,8 +3,9 @@
     python train.py -s data/nvidia/Skating --plugin reflow [--disable full_flow,cam_flow]
 
 Components (``--disable`` / ``--enable``, the paper's ablation switches):
-    comp_init   complete canonical space (part 2, reflow_plugin.canonical; reported as unavailable
-                when that package is missing, and the run says which initial cloud it used)
+    comp_init   complete canonical space (part 2, reflow_plugin.canonical): its fused static cloud plus
+                the keyframe seeds of `separation` (depth aligned to that cloud); the paper's
+                reference-frame dynamic cloud with --dynamic_keyframes 1 or without separation
     separation  static/dynamic separated deformation + dynamic points seeded in the motion masks
     full_flow   full flow matching (L_mc + L_cr on the pair's rendered full flows)
     cam_flow    camera flow matching on static pixels
@@ -202,18 +203,38 @@ class ReFlowPlugin(Plugin):
                 np.concatenate(times))
 
     def _canonical_cloud(self, ctx, masks) -> PointCloud:
+        """Canonical STATIC cloud + part 1's keyframe seeds (their depth aligned to the static points)
+        by default; the paper's reference-frame dynamic cloud with --dynamic_keyframes 1 or without
+        separation (measured on the skating scene: the single reference cloud alone misses the skater)."""
         from .canonical import build_canonical_space, options_from_params
 
-        space = build_canonical_space(ctx.scene, masks, options_from_params(self.p),
+        options = options_from_params(self.p)
+        options.device = str(ctx.device)
+        space = build_canonical_space(ctx.scene, masks, options,
                                       cache_dir=self._run_dir(ctx) / "canonical", progress=not ctx.args.run.quiet)
         space.write_ply(self._run_dir(ctx))
-        self.reference = space.reference_frame
-        self.labels = np.concatenate([np.zeros(len(space.static), bool), np.ones(len(space.dynamic), bool)])
-        self.info["initial_cloud"] = (f"canonical space: {len(space.static)} static + {len(space.dynamic)} "
-                                      "dynamic points")
         self.info["canonical"] = space.report
-        return PointCloud(np.concatenate([space.static.points, space.dynamic.points]),
-                          np.concatenate([space.static.colors, space.dynamic.colors]))
+        static, cameras = space.static, ctx.train_cameras
+        if len(static) == 0:  # every pixel masked or unconfident: the host's cloud stands in
+            log.warning("canonical space: no static point; the host's %s cloud is used as the static cloud",
+                        ctx.point_cloud_source)
+            static = ctx.point_cloud
+        self.reference = space.reference_frame
+        keyframe_seeds = (masks is not None and self.reference is not None and self.is_enabled("separation")
+                          and self.p.seed_points > 0 and self.p.dynamic_keyframes > 1)
+        if keyframe_seeds:
+            depths = aligned_depths(cameras, static.points, masks)
+            dynamic, times = self._seed_keyframes(ctx, cameras, masks, depths, static)
+            what = f"{len(dynamic)} keyframe-seeded dynamic points"
+        else:
+            dynamic, times = space.dynamic, np.full(len(space.dynamic), np.nan)
+            what = f"{len(dynamic)} dynamic points (reference frame)"
+        self.labels = np.concatenate([np.zeros(len(static), bool), np.ones(len(dynamic), bool)])
+        self.seed_times = np.concatenate([np.full(len(static), np.nan), times])
+        self.info["initial_cloud"] = f"canonical space: {len(static)} static + {what}"
+        log.info("initial cloud: %s", self.info["initial_cloud"])
+        return PointCloud(np.concatenate([static.points, dynamic.points]),
+                          np.concatenate([static.colors, dynamic.colors]))
 
     def build_model(self, ctx) -> GaussianModel | None:
         if not self.is_enabled("separation"):

@@ -1,0 +1,258 @@
+"""Pointmap providers: pairwise pointmaps with confidence, the input of the global alignment.
+
+    provider = make_provider(cameras, source_path, options)
+    depth, conf = provider.depth(n)           # [h, w] z-depth of frame n (unknown scale/shift), [h, w] >= 0
+    pair = provider.pair(i, j)                # X_ii, X_ji [h, w, 3] in camera i's frame, C_ii, C_ji [h, w]
+
+Every array lives on the provider's pixel grid (every `stride` pixels, geometry.grid); `full=True`
+asks for full resolution (used for the reference frame's dynamic points).
+
+Providers:
+    depth  the dataset's disparity (`disp/*.npy`, loaded as Camera.disparity): depth = 1 / disparity.
+           Real captures ship monocular disparity of unknown per-frame scale and shift; the
+           alignment's per-frame scale/shift absorbs it. `depth_source="gt"` reads the
+           simulator's `gt/depth/*.npy` instead, with controlled errors for tests: per-frame scale
+           drift exp(drift * N(0, 1)), multiplicative noise (1 + noise * N(0, 1)) per pixel, a
+           fraction `outliers` of pixels scaled by U(0.5, 2). A pair (i, j) is built like a
+           learned pair model's output: both pointmaps at frame i's (unknown) scale, frame j's
+           points moved into camera i by the dataset's relative pose.
+    flow   two-view triangulation of OpenCV DIS optical flow with the known cameras; confidence =
+           forward-backward consistency exp(-|f + b|^2 / 2) x min(1, triangulation angle / 2 deg).
+           Needs a moving camera (no parallax, no depth: zero confidence).
+
+A learned model (DUSt3R, MonST3R) plugs in by subclassing PointmapProvider: `pair` returns the
+network's (X_i^i, X_j^i, C_i^i, C_j^i) resampled to the grid and `depth(n)` the z channel of
+X_n^n from any pair containing n. We ship none (no weights download).
+"""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from baselines.data import Camera
+
+from .geometry import backproject, grid, relative, to_camera
+
+MIN_ANGLE_DEG = 2.0
+
+
+@dataclass
+class PairPrediction:
+    """Pointmaps of a pair (i, j), both in camera i's frame, on the provider's grid.
+
+    X_ii: [h, w, 3] frame i's pixels. X_ji: [h, w, 3] frame j's pixels. C_ii, C_ji: [h, w] >= 0
+    (0 = no evidence: non-finite points always get 0).
+    """
+
+    X_ii: np.ndarray
+    X_ji: np.ndarray
+    C_ii: np.ndarray
+    C_ji: np.ndarray
+
+    def sanitized(self) -> "PairPrediction":
+        """Non-finite points get confidence 0 and value 0; negative or NaN confidences become 0."""
+        out = []
+        for X, C in ((self.X_ii, self.C_ii), (self.X_ji, self.C_ji)):
+            C = np.nan_to_num(np.asarray(C, np.float64), nan=0.0, posinf=0.0, neginf=0.0).clip(min=0)
+            ok = np.isfinite(X).all(-1)
+            out += [np.where(ok[..., None], X, 0.0), np.where(ok, C, 0.0)]
+        return PairPrediction(out[0], out[2], out[1], out[3])
+
+
+def _np(tensor) -> np.ndarray:
+    return tensor.detach().cpu().double().numpy()
+
+
+class PointmapProvider(ABC):
+    """Pairwise pointmaps for the training cameras (indices into `cameras`)."""
+
+    name = "provider"
+
+    def __init__(self, cameras: Sequence[Camera], stride: int = 1) -> None:
+        self.cameras = list(cameras)
+        self.stride = int(stride)
+        self.K = [_np(c.K) for c in self.cameras]
+        self.viewmats = [_np(c.viewmat) for c in self.cameras]
+
+    def grid(self, full: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        cam = self.cameras[0]
+        return grid(cam.height, cam.width, 1 if full else self.stride)
+
+    def colours(self, n: int, full: bool = False) -> np.ndarray:
+        """[h, w, 3] colours of frame n on the grid."""
+        rows, cols = self.grid(full)
+        return self.cameras[n].image.detach().cpu().numpy()[np.ix_(rows, cols)]
+
+    @abstractmethod
+    def depth(self, n: int, full: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(z-depth [h, w] of frame n, up to the provider's scale/shift; confidence [h, w])."""
+
+    @abstractmethod
+    def pair(self, i: int, j: int) -> PairPrediction:
+        """Pointmaps of frames i and j in camera i's frame."""
+
+    def key(self) -> str:
+        """Everything the provider's output depends on besides the cameras (for the cache)."""
+        return f"{self.name}|stride={self.stride}"
+
+
+class DepthProvider(PointmapProvider):
+    """Pointmaps from per-frame depth (dataset disparity, or simulator ground truth with errors)."""
+
+    name = "depth"
+
+    def __init__(self, cameras: Sequence[Camera], stride: int = 1, source: str = "disparity",
+                 source_path: Path | None = None, noise: float = 0.0, drift: float = 0.0,
+                 outliers: float = 0.0, seed: int = 0) -> None:
+        super().__init__(cameras, stride)
+        if source not in ("disparity", "gt"):
+            raise ValueError(f"depth provider: unknown depth source {source!r} (disparity or gt)")
+        self.source, self.source_path = source, None if source_path is None else Path(source_path)
+        self.noise, self.drift, self.outliers, self.seed = noise, drift, outliers, seed
+        rng = np.random.default_rng(seed)
+        self.scales = np.exp(drift * rng.standard_normal(len(self.cameras)))  # [N] per-frame scale drift
+        self._cache: dict[int, np.ndarray] = {}
+        if source == "disparity":
+            missing = [c.image_name for c in self.cameras if c.disparity is None]
+            if missing:
+                raise ValueError(f"depth provider: no disparity (disp/*.npy) for {len(missing)} frames, "
+                                 f"e.g. {missing[0]}; use canonical_provider=flow")
+
+    def key(self) -> str:
+        return (f"{super().key()}|{self.source}|noise={self.noise}|drift={self.drift}|"
+                f"outliers={self.outliers}|seed={self.seed}")
+
+    def _clean(self, n: int) -> np.ndarray:
+        """[H, W] depth at full resolution as stored (NaN where the disparity is not positive)."""
+        if n in self._cache:
+            return self._cache[n]
+        cam = self.cameras[n]
+        if self.source == "gt":
+            path = (self.source_path or Path(".")) / "gt" / "depth" / f"{cam.image_name}.npy"
+            if not path.is_file():
+                raise ValueError(f"depth provider: {path} not found (depth_source=gt needs a simulator scene)")
+            depth = np.load(path).astype(np.float64)
+            if depth.shape != (cam.height, cam.width):
+                depth = cv2.resize(depth, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
+        else:
+            disparity = cam.disparity.detach().cpu().double().numpy()
+            with np.errstate(divide="ignore", invalid="ignore"):
+                depth = np.where(disparity > 1e-8, 1.0 / disparity, np.nan)
+        self._cache[n] = depth
+        return depth
+
+    def _sampled(self, n: int, full: bool, *tag: int) -> np.ndarray:
+        """Frame n's depth on the grid with the configured errors (scale drift excluded); every
+        call site (`tag`: the frame itself, or a pair) draws its own noise, as a network would."""
+        rows, cols = self.grid(full)
+        depth = self._clean(n)[np.ix_(rows, cols)]
+        rng = np.random.default_rng((self.seed, n, *tag))
+        if self.noise > 0:
+            depth = depth * np.clip(1 + self.noise * rng.standard_normal(depth.shape), 0.2, None)
+        if self.outliers > 0:
+            bad = rng.random(depth.shape) < self.outliers
+            depth = np.where(bad, depth * rng.uniform(0.5, 2.0, depth.shape), depth)
+        return depth
+
+    def depth(self, n: int, full: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        d = self.scales[n] * self._sampled(n, full, int(full))
+        return d, (np.isfinite(d) & (d > 0)).astype(np.float64)
+
+    def pair(self, i: int, j: int) -> PairPrediction:
+        rows, cols = self.grid()
+        X_ii = backproject(self._sampled(i, False, i, j, 2), self.K[i], rows, cols)
+        X_jj = backproject(self._sampled(j, False, i, j, 3), self.K[j], rows, cols)
+        T = relative(self.viewmats[i], self.viewmats[j])
+        X_ji = X_jj @ T[:3, :3].T + T[:3, 3]
+        s = self.scales[i]
+        conf = [(np.isfinite(X).all(-1) & (X[..., 2] > 0)).astype(np.float64) for X in (X_ii, X_jj)]
+        return PairPrediction(s * X_ii, s * X_ji, conf[0], conf[1]).sanitized()
+
+
+def _grey(camera: Camera) -> np.ndarray:
+    image = camera.image.detach().cpu().numpy()
+    return cv2.cvtColor(np.clip(image * 255, 0, 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+
+
+class FlowProvider(PointmapProvider):
+    """Pointmaps by triangulating DIS optical flow between two views with known cameras."""
+
+    name = "flow"
+
+    def __init__(self, cameras: Sequence[Camera], stride: int = 1) -> None:
+        super().__init__(cameras, stride)
+        self._flows: dict[tuple[int, int], np.ndarray] = {}
+        self._dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+
+    def flow(self, i: int, j: int) -> np.ndarray:
+        """[H, W, 2] DIS flow from frame i to frame j (cached)."""
+        if (i, j) not in self._flows:
+            self._flows[(i, j)] = self._dis.calc(_grey(self.cameras[i]), _grey(self.cameras[j]), None)
+        return self._flows[(i, j)]
+
+    def triangulate(self, i: int, j: int, full: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(world points [h, w, 3] of frame i's grid pixels, confidence [h, w]) from flow i -> j."""
+        rows, cols = self.grid(full)
+        fwd, bwd = self.flow(i, j), self.flow(j, i)
+        f = fwd[np.ix_(rows, cols)]
+        u = cols[None, :] + 0.5 + f[..., 0]
+        v = rows[:, None] + 0.5 + f[..., 1]
+        back = cv2.remap(bwd, (u - 0.5).astype(np.float32), (v - 0.5).astype(np.float32), cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=(1e6, 1e6))
+        fb = ((f + back) ** 2).sum(-1)
+        Ki_inv, Kj_inv = np.linalg.inv(self.K[i]), np.linalg.inv(self.K[j])
+        Ri, Rj = self.viewmats[i][:3, :3], self.viewmats[j][:3, :3]
+        ci = -Ri.T @ self.viewmats[i][:3, 3]
+        cj = -Rj.T @ self.viewmats[j][:3, 3]
+        pi = np.stack(np.broadcast_arrays(cols[None, :] + 0.5, rows[:, None] + 0.5, 1.0), -1)
+        pj = np.stack([u, v, np.ones_like(u)], -1)
+        di = (pi @ Ki_inv.T) @ Ri  # world directions (R^T K^-1 p)
+        dj = (pj @ Kj_inv.T) @ Rj
+        # midpoint of the closest points of the two rays: solve [di, -dj] [a, b]^T = cj - ci
+        b = cj - ci
+        aa, bb, ab = (di * di).sum(-1), (dj * dj).sum(-1), (di * dj).sum(-1)
+        db, ebb = (di * b).sum(-1), (dj * b).sum(-1)
+        det = aa * bb - ab ** 2
+        safe = np.where(np.abs(det) > 1e-12, det, 1e-12)
+        lam_i = (bb * db - ab * ebb) / safe
+        lam_j = (ab * db - aa * ebb) / safe
+        points = 0.5 * (ci + lam_i[..., None] * di + cj + lam_j[..., None] * dj)
+        cos = ab / np.sqrt(aa * bb)
+        angle = np.degrees(np.arccos(np.clip(cos, -1, 1)))
+        inside = (u >= 0) & (u < self.cameras[j].width) & (v >= 0) & (v < self.cameras[j].height)
+        conf = np.exp(-fb / 2.0) * np.minimum(1.0, angle / MIN_ANGLE_DEG)
+        ok = inside & (lam_i > 0) & (lam_j > 0) & (np.abs(det) > 1e-12) & np.isfinite(points).all(-1)
+        return points, np.where(ok, conf, 0.0)
+
+    def depth(self, n: int, full: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Triangulated with both neighbours (n - 1, n + 1); per pixel the more confident one."""
+        if len(self.cameras) < 2:
+            raise ValueError("flow provider: a single frame has no flow to triangulate")
+        best_z, best_c = None, None
+        for m in (n - 1, n + 1):
+            if not 0 <= m < len(self.cameras):
+                continue
+            points, conf = self.triangulate(n, m, full)
+            z = to_camera(points, self.viewmats[n])[..., 2]
+            if best_z is None:
+                best_z, best_c = z, conf
+            else:
+                better = conf > best_c
+                best_z, best_c = np.where(better, z, best_z), np.where(better, conf, best_c)
+        good = best_c > 0
+        fill = float(np.median(best_z[good])) if good.any() else 1.0
+        return np.where(good, best_z, fill), best_c
+
+    def pair(self, i: int, j: int) -> PairPrediction:
+        Pi, Ci = self.triangulate(i, j)
+        Pj, Cj = self.triangulate(j, i)
+        V = self.viewmats[i]
+        return PairPrediction(to_camera(Pi, V), to_camera(Pj, V), Ci, Cj).sanitized()
+
+
+__all__ = ["PairPrediction", "PointmapProvider", "DepthProvider", "FlowProvider"]

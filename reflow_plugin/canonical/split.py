@@ -1,0 +1,88 @@
+"""Static / dynamic split of the aligned frames (paper 3.2.1 "Static-Dynamic Disentanglement").
+
+    static = static_cloud(provider, states, masks, voxel)      # fused over all frames, outside the masks
+    dynamic, k = dynamic_cloud(provider, states, masks, max_points)   # reference frame k's masked pixels
+
+Static: every frame's grid pixels outside its motion mask, with positive confidence and depth,
+back-projected with the aligned depth (scale * D + shift) and camera, then voxel-downsampled
+(mean position and colour per voxel of side `voxel` x the median depth; 0 = no downsampling).
+Dynamic: the reference frame (largest mask coverage x colour diversity, seeding.reference_frame)
+back-projected at full resolution inside its mask. Without masks every point is static.
+"""
+from __future__ import annotations
+
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from baselines.data import PointCloud
+
+from ..seeding import reference_frame, seed_dynamic_points
+from .alignment import FrameState
+from .geometry import backproject, to_world
+from .providers import PointmapProvider
+
+MIN_CONFIDENCE = 0.5  # static points: pixels whose provider confidence is above this (flow: fb error ~1 px)
+
+
+def _empty() -> PointCloud:
+    return PointCloud(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
+
+
+def aligned_depth(provider: PointmapProvider, n: int, state: FrameState, full: bool = False,
+                  min_confidence: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(metric depth [h, w] with NaN where unusable, valid [h, w] bool) of frame n: confidence above
+    `min_confidence`, finite positive depth."""
+    depth, conf = provider.depth(n, full)
+    z = state.scale * np.asarray(depth, np.float64) + state.shift
+    valid = np.isfinite(z) & (z > 0) & (np.nan_to_num(np.asarray(conf, np.float64)) > min_confidence)
+    return np.where(valid, z, np.nan), valid
+
+
+def voxel_downsample(points: np.ndarray, colours: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """Mean point [V, 3] and colour [V, 3] per occupied voxel of side `voxel` (> 0)."""
+    keys = np.floor(points / voxel).astype(np.int64)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    sums = np.zeros((len(counts), 6))
+    np.add.at(sums, inverse, np.concatenate([points, colours], 1))
+    means = sums / counts[:, None]
+    return means[:, :3], means[:, 3:]
+
+
+def static_cloud(provider: PointmapProvider, states: Mapping[int, FrameState],
+                 masks: Sequence[np.ndarray] | None, voxel: float) -> PointCloud:
+    """Fused static points of every frame in `states` (see the module docstring)."""
+    rows, cols = provider.grid()
+    points, colours = [], []
+    for n, state in sorted(states.items()):
+        z, valid = aligned_depth(provider, n, state, min_confidence=MIN_CONFIDENCE)
+        if masks is not None:
+            valid &= ~masks[n][np.ix_(rows, cols)]
+        cam = backproject(np.nan_to_num(z), provider.K[n], rows, cols)
+        points.append(to_world(cam[valid], state.viewmat))
+        colours.append(provider.colours(n)[valid])
+    if not points or not sum(len(p) for p in points):
+        return _empty()
+    P, C = np.concatenate(points), np.concatenate(colours).astype(np.float64)
+    if voxel > 0:
+        depths = np.concatenate([aligned_depth(provider, n, s)[0].reshape(-1) for n, s in sorted(states.items())])
+        scale = float(np.nanmedian(depths))
+        P, C = voxel_downsample(P, C, voxel * scale)
+    return PointCloud(P, np.clip(C, 0, 1))
+
+
+def dynamic_cloud(provider: PointmapProvider, states: Mapping[int, FrameState],
+                  masks: Sequence[np.ndarray] | None, max_points: int, seed: int = 0) -> tuple[PointCloud, int | None]:
+    """(points of the reference frame inside its mask, reference index or None without masks)."""
+    if masks is None:
+        return _empty(), None
+    frames = sorted(states)
+    k = reference_frame([provider.cameras[n] for n in frames], [masks[n] for n in frames])
+    if k is None:
+        return _empty(), None
+    n = frames[k]
+    z, _ = aligned_depth(provider, n, states[n], full=True)
+    camera = provider.cameras[n]
+    state_cam = type(camera)(**{**camera.__dict__, "viewmat": states[n].viewmat})
+    return seed_dynamic_points(state_cam, masks[n], z, max_points, seed=seed), n
