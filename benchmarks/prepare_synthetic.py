@@ -26,20 +26,24 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from baselines.prepare.evaluate import compare_with_truth  # noqa: E402
-from baselines.synthetic import Orbit, RigidMotion, SceneObject, SceneSpec, Texture, get_scene, simulate  # noqa: E402
+from baselines.synthetic import (Orbit, Pan, RigidMotion, SceneObject, SceneSpec, StaticCamera, Texture,  # noqa: E402
+                                 get_scene, simulate)
 
 
 def video_scene(frames: int = 24, width: int = 160, height: int = 120, sweep_deg: float = 30.0,
-                static_camera: bool = False) -> SceneSpec:
-    """The static room, an orbiting camera (or a fixed one) and a big box moving across the view
-    (diagonally: motion along the horizontal epipolar lines of an orbit is invisible to masks)."""
+                camera: str = "orbit") -> SceneSpec:
+    """The static room, a camera and a big box moving across the view (diagonally: motion along
+    the horizontal epipolar lines of an orbit is invisible to masks). `camera`: "orbit" (moves
+    on an arc, looking at the room), "static" (never moves) or "pan" (turns on the spot)."""
     room = get_scene("static")
     mover = SceneObject("mover", "box", size=(0.3, 0.3, 0.3), position=(-1.2, 1.0, -0.4),
                         texture=Texture("checker", ((0.95, 0.9, 0.2), (0.1, 0.3, 0.8)), period=0.1, detail=0.3),
                         motion=RigidMotion(velocity=(1.6, 0.9, 0.6), spin_deg=90.0))
-    camera = Orbit(target=(0.0, 1.0, -1.0), radius=4.0, height=0.4, start_deg=-sweep_deg / 2,
-                   sweep_deg=0.0 if static_camera else sweep_deg)
-    return dataclasses.replace(room, name="prepare_clip", objects=room.objects + (mover,), camera=camera,
+    paths = {"orbit": Orbit(target=(0.0, 1.0, -1.0), radius=4.0, height=0.4, start_deg=-sweep_deg / 2,
+                            sweep_deg=sweep_deg),
+             "static": StaticCamera(position=(0.0, 1.4, 3.0), look_at=(0.0, 1.0, -1.0)),
+             "pan": Pan(position=(0.0, 1.4, 3.0), look_at=(0.0, 1.0, -1.0), sweep_deg=sweep_deg)}
+    return dataclasses.replace(room, name="prepare_clip", objects=room.objects + (mover,), camera=paths[camera],
                                frames=frames, width=width, height=height,
                                description="orbiting camera, one large moving box (prepare benchmark)")
 

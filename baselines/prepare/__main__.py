@@ -11,6 +11,11 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
+# FFmpeg's and OpenCV's own console messages (e.g. "moov atom not found" for a broken .mp4) would
+# break the one-line error; our messages say what failed. Set before OpenCV opens a video.
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
+
 from .errors import PrepareError
 from .pipeline import PrepareOptions, prepare, summary_lines
 from .sfm import CAMERA_MODELS, SfmOptions

@@ -3,9 +3,10 @@
     check = measure_parallax(images)        # before SfM: static camera -> PrepareError
     why = explain_failure(check)            # after a failed SfM: the likely cause, in words
 
-For a few frame pairs spread over the clip (first with middle and last, and neighbours), DIS
-flow gives dense correspondences. Their median length says whether the camera moved at all (the
-median ignores a moving object that covers less than half the view). A homography fitted with
+For a few frame pairs spread over the clip (the first frame with later ones, and neighbours),
+OpenCV SIFT matches (ratio test) give correspondences; unlike dense flow they survive the large
+displacements between distant frames. Their median length says whether the camera moved at all
+(the median ignores a moving object that covers less than half the view). A homography fitted with
 RANSAC says whether the motion is a pure rotation (or the scene a plane): then (nearly) every
 correspondence that fits the epipolar geometry (a fundamental matrix, which a moving object does
 not fit) also fits the homography, and triangulation has no depth to work with.
@@ -18,7 +19,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from ..data.optical_flow import consistent, flow_pair, pixel_grid
+from ..data.optical_flow import to_gray_u8
 from .errors import PrepareError
 
 STATIC_MEDIAN_PX = 0.5  # median flow below this on every pair: the camera does not move
@@ -36,6 +37,12 @@ class ParallaxCheck:
     homography_inliers: list[float] = field(default_factory=list)
 
     @property
+    def frame_motion_px(self) -> float | None:
+        """Median flow between consecutive frames (the measured neighbour pair), if measured."""
+        steps = [m for (a, b), m in zip(self.pairs, self.median_flow_px) if b - a == 1]
+        return steps[0] if steps else None
+
+    @property
     def static(self) -> bool:
         return bool(self.median_flow_px) and max(self.median_flow_px) < STATIC_MEDIAN_PX
 
@@ -49,16 +56,18 @@ class ParallaxCheck:
                 "static": self.static, "rotation_only": self.rotation_only}
 
 
-def correspondences(image_a: np.ndarray, image_b: np.ndarray, step: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """([M, 2], [M, 2]) forward-backward-consistent flow matches on a grid of `step` pixels."""
-    fwd, bwd = flow_pair(image_a, image_b)
-    ok = consistent(fwd, bwd)
-    x, y = pixel_grid(*fwd.shape[:2])
-    sel = np.zeros_like(ok)
-    sel[::step, ::step] = True
-    sel &= ok
-    src = np.stack([x[sel], y[sel]], -1)
-    return src, src + fwd[sel]
+def correspondences(image_a: np.ndarray, image_b: np.ndarray, ratio: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
+    """([M, 2], [M, 2]) SIFT matches of two images that pass Lowe's ratio test."""
+    sift = cv2.SIFT_create(nfeatures=2000)
+    keys_a, desc_a = sift.detectAndCompute(to_gray_u8(image_a), None)
+    keys_b, desc_b = sift.detectAndCompute(to_gray_u8(image_b), None)
+    if desc_a is None or desc_b is None or len(keys_a) < 2 or len(keys_b) < 2:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    pairs = cv2.BFMatcher(cv2.NORM_L2).knnMatch(desc_a, desc_b, k=2)
+    good = [m for m, n in (p for p in pairs if len(p) == 2) if m.distance < ratio * n.distance]
+    src = np.array([keys_a[m.queryIdx].pt for m in good], np.float64).reshape(-1, 2)
+    dst = np.array([keys_b[m.trainIdx].pt for m in good], np.float64).reshape(-1, 2)
+    return src, dst
 
 
 def homography_share(src: np.ndarray, dst: np.ndarray) -> float:
@@ -74,8 +83,9 @@ def homography_share(src: np.ndarray, dst: np.ndarray) -> float:
 
 
 def check_pairs(n: int) -> list[tuple[int, int]]:
-    """The frame pairs measured: the first with the middle and the last, and the middle's neighbour."""
-    pairs = [(0, n - 1), (0, n // 2), (n // 2, min(n - 1, n // 2 + 1))]
+    """The frame pairs measured: the first with a quarter, the middle and the last frame, and the
+    middle's neighbour."""
+    pairs = [(0, n - 1), (0, n // 2), (0, n // 4), (n // 2, min(n - 1, n // 2 + 1))]
     return sorted({p for p in pairs if p[0] != p[1]})
 
 
@@ -101,9 +111,9 @@ def require_camera_motion(check: ParallaxCheck) -> None:
             "film while walking around the scene (a static tripod shot cannot be reconstructed)")
 
 
-def explain_failure(check: ParallaxCheck, registered: int, total: int) -> PrepareError:
-    """The error to report when mapping registered too few frames, with the likely cause."""
-    what = f"structure from motion registered {registered} of {total} frames"
+def explain_failure(check: ParallaxCheck, registered: int, total: int, points: int) -> PrepareError:
+    """The error to report when mapping registered too few frames or points, with the likely cause."""
+    what = f"structure from motion failed ({registered} of {total} frames registered, {points} points)"
     if check.rotation_only:
         return PrepareError(f"{what}: the camera only rotates (a homography explains "
                             f"{min(check.homography_inliers):.0%} of the motion), so depth cannot be triangulated",

@@ -25,7 +25,8 @@ from .report import model_statistics, summary_lines, write_report
 from .sfm import CAMERA_MODELS, SfmOptions, extract_features, map_frames, match_frames, read_model
 
 WORK_DIR = ".prepare"
-MIN_REGISTERED = 3
+MIN_REGISTERED = 3  # fewer registered frames, or fewer 3D points, is a failed reconstruction
+MIN_POINTS = 20
 
 
 @dataclass
@@ -62,8 +63,8 @@ def _read_frames(frame_dir: Path, names: list[str]) -> list[np.ndarray]:
     return [cv2.imread(str(frame_dir / n), cv2.IMREAD_COLOR) for n in names]
 
 
-def _masks_stage(options: PrepareOptions, cache: StageCache, key: str, frame_dir: Path, names: list[str],
-                 images: list[np.ndarray], work: Path) -> tuple[dict[str, np.ndarray] | None, dict, Path | None]:
+def _masks_stage(options: PrepareOptions, cache: StageCache, key: str, names: list[str],
+                 images: list[np.ndarray], frame_motion_px: float | None, work: Path) -> tuple[dict[str, np.ndarray] | None, dict, Path | None]:
     """(masks by frame name or None, mask info, COLMAP mask folder or None)."""
     mask_dir, colmap_dir = work / "masks", work / "colmap_masks"
     if cache.done("masks", key):
@@ -74,7 +75,7 @@ def _masks_stage(options: PrepareOptions, cache: StageCache, key: str, frame_dir
         return masks, info, colmap_dir
     for folder in (mask_dir, colmap_dir):
         shutil.rmtree(folder, ignore_errors=True)
-    found, info = motion_masks(images, options.masks, options.progress)
+    found, info = motion_masks(images, options.masks, frame_motion_px, options.progress)
     masks = None if found is None else dict(zip(names, found))
     if masks is not None:
         mask_dir.mkdir(parents=True)
@@ -130,7 +131,8 @@ def prepare(options: PrepareOptions) -> dict:
 
     masks_source = options.masks if options.masks in ("auto", "none") else file_identity(Path(options.masks))
     masks_key = cache.key(frames_key, masks_source)
-    masks, mask_info, colmap_masks = _masks_stage(options, cache, masks_key, frame_dir, names, images, work)
+    masks, mask_info, colmap_masks = _masks_stage(options, cache, masks_key, names, images,
+                                                   parallax.frame_motion_px, work)
 
     database, models_dir = work / "database.db", work / "models"
     sfm = options.sfm
@@ -163,8 +165,8 @@ def prepare(options: PrepareOptions) -> dict:
                 model.write(str(best_dir))
         cache.finish("mapping", mapping_key, {"best": best_dir.name if best_dir else None})
     registered_count = 0 if model is None else int(model.num_reg_images())
-    if registered_count < MIN_REGISTERED:
-        raise explain_failure(parallax, registered_count, len(names))
+    if registered_count < MIN_REGISTERED or model.num_points3D() < MIN_POINTS:
+        raise explain_failure(parallax, registered_count, len(names), 0 if model is None else model.num_points3D())
 
     registered = sorted(image.name for image in model.images.values() if image.has_pose)
     times = frame_times(names)
