@@ -31,12 +31,12 @@ from baselines.synthetic import (Orbit, Pan, RigidMotion, SceneObject, SceneSpec
 
 
 def video_scene(frames: int = 24, width: int = 160, height: int = 120, sweep_deg: float = 30.0,
-                camera: str = "orbit") -> SceneSpec:
+                camera: str = "orbit", mover_size: float = 0.3) -> SceneSpec:
     """The static room, a camera and a big box moving across the view (diagonally: motion along
     the horizontal epipolar lines of an orbit is invisible to masks). `camera`: "orbit" (moves
     on an arc, looking at the room), "static" (never moves) or "pan" (turns on the spot)."""
     room = get_scene("static")
-    mover = SceneObject("mover", "box", size=(0.3, 0.3, 0.3), position=(-1.2, 1.0, -0.4),
+    mover = SceneObject("mover", "box", size=(mover_size,) * 3, position=(-1.2, 1.0, -0.4),
                         texture=Texture("checker", ((0.95, 0.9, 0.2), (0.1, 0.3, 0.8)), period=0.1, detail=0.3),
                         motion=RigidMotion(velocity=(1.6, 0.9, 0.6), spin_deg=90.0))
     paths = {"orbit": Orbit(target=(0.0, 1.0, -1.0), radius=4.0, height=0.4, start_deg=-sweep_deg / 2,
@@ -77,13 +77,18 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--frames", type=int, default=24)
     parser.add_argument("--width", type=int, default=160)
+    parser.add_argument("--mover-size", type=float, default=0.3, help="half extent of the moving box (scene units)")
     parser.add_argument("--out", type=Path, default=REPO / "output" / "prepare_bench")
     args = parser.parse_args()
-    scene_dir, video = render_clip(args.out, frames=args.frames, width=args.width, height=args.width * 3 // 4)
+    scene_dir, video = render_clip(args.out, frames=args.frames, width=args.width, height=args.width * 3 // 4,
+                                   mover_size=args.mover_size)
+    moving = np.mean([cv2.imread(str(p), cv2.IMREAD_GRAYSCALE).mean() / 255 for p in (scene_dir / "motion_masks").glob("*.png")])
+    print(f"clip: {args.frames} frames {args.width}x{args.width * 3 // 4}, moving box covers {moving:.1%} of the view on average")
     truth = json.loads((scene_dir / "gt" / "cameras.json").read_text())["frames"]
+    true_focal = truth[0]["K"][0][0]
     print("| masks | registered | mean reprojection error (px) | points | rotation error (deg, max) "
-          "| position error (% of extent, max) | prepare wall s |")
-    print("|---|---:|---:|---:|---:|---:|---:|")
+          "| relative rotation error (deg, max) | position error (% of extent, max) | focal error | prepare wall s |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for masks in ("auto", "none"):
         dataset = args.out / f"dataset_{masks}"
         start = time.perf_counter()
@@ -96,7 +101,9 @@ def main() -> None:
         errors = compare_with_truth(dataset, truth)
         print(f"| {masks} | {report['registered_frames']}/{report['extracted_frames']} "
               f"| {report['mean_reprojection_error_px']:.3f} | {report['points']} "
-              f"| {errors['rotation_error_deg_max']:.3f} | {100 * errors['position_error_rel_max']:.2f} | {wall:.1f} |")
+              f"| {errors['rotation_error_deg_max']:.3f} | {errors['relative_rotation_error_deg_max']:.3f} "
+              f"| {100 * errors['position_error_rel_max']:.2f} "
+              f"| {100 * (report['camera']['params'][0] / true_focal - 1):+.1f}% | {wall:.1f} |")
 
 
 if __name__ == "__main__":

@@ -12,7 +12,6 @@ in the SOURCE sequence, so names order frames in time and say where each came fr
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -65,9 +64,13 @@ def _probe_video(path: Path) -> SourceInfo:
                                "re-encode it (e.g. ffmpeg -i IN -c:v libx264 OUT.mp4) or extract its frames to a folder")
         count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
         fps = float(capture.get(cv2.CAP_PROP_FPS)) or None
+        if count <= 0:  # some containers do not store it: count by demuxing (no decoding)
+            count = 1
+            while capture.grab():
+                count += 1
     finally:
         capture.release()
-    return SourceInfo("video", max(count, 1), frame.shape[1], frame.shape[0], fps)
+    return SourceInfo("video", count, frame.shape[1], frame.shape[0], fps)
 
 
 def probe_source(source: Path) -> SourceInfo:
@@ -150,8 +153,3 @@ def extract_frames(source: Path, info: SourceInfo, image_dir: Path, width: int |
         raise PrepareError(f"{source} gives {len(names)} frame(s) after subsampling; SfM needs several",
                            "raise --fps / --max-frames or use a longer clip")
     return names
-
-
-def frame_stride_seconds(info: SourceInfo) -> float | None:
-    """Seconds between consecutive source frames (None without a frame rate)."""
-    return None if not info.fps or math.isnan(info.fps) else 1.0 / info.fps
