@@ -27,6 +27,7 @@ from .sfm import CAMERA_MODELS, SfmOptions, extract_features, map_frames, match_
 WORK_DIR = ".prepare"
 MIN_REGISTERED = 3  # fewer registered frames, or fewer 3D points, is a failed reconstruction
 MIN_POINTS = 20
+BEST_MODEL = "best"
 
 
 @dataclass
@@ -87,10 +88,42 @@ def _masks_stage(options: PrepareOptions, cache: StageCache, key: str, names: li
     return masks, info.as_dict(), colmap_dir if masks is not None else None
 
 
-def _dropped(names: list[str], registered: set[str], models_dir: Path, best_dir: Path | None) -> list[dict]:
+def _sfm_stages(options: PrepareOptions, cache: StageCache, masks_key: str, names: list[str],
+                colmap_masks: Path | None, work: Path):
+    """(largest model or None, verified pairs): features, matching and mapping, each reused when done.
+
+    pycolmap writes every model to `models/<k>`; the largest is also kept as `models/best`.
+    """
+    database, models_dir, frame_dir = work / "database.db", work / "models", work / "frames"
+    sfm = options.sfm
+    features_key = cache.key(masks_key, sfm.camera_model, sfm.max_features)
+    if not cache.done("features", features_key):
+        database.unlink(missing_ok=True)
+        extract_features(database, frame_dir, names, colmap_masks, sfm, options.progress)
+        cache.finish("features", features_key)
+    matches_key = cache.key(features_key, sfm.overlap, sfm.seed)
+    if cache.done("matches", matches_key):
+        verified = cache.extra("matches")["verified_pairs"]
+    else:
+        verified = match_frames(database, sfm, options.progress)
+        cache.finish("matches", matches_key, {"verified_pairs": verified})
+    mapping_key = cache.key(matches_key, sfm.as_dict())
+    best_dir = models_dir / BEST_MODEL
+    if cache.done("mapping", mapping_key) and best_dir.is_dir():
+        return read_model(best_dir), verified
+    shutil.rmtree(models_dir, ignore_errors=True)
+    model = map_frames(database, frame_dir, models_dir, len(names), sfm, options.progress)
+    if model is not None:
+        best_dir.mkdir(parents=True)
+        model.write(str(best_dir))
+    cache.finish("mapping", mapping_key)
+    return model, verified
+
+
+def _dropped(names: list[str], registered: set[str], models_dir: Path) -> list[dict]:
     """Each unregistered frame with the reason."""
     elsewhere: dict[str, int] = {}
-    for folder in sorted(p for p in models_dir.iterdir() if p.is_dir() and p != best_dir):
+    for folder in sorted(p for p in models_dir.iterdir() if p.is_dir() and p.name != BEST_MODEL):
         try:
             other = read_model(folder)
         except Exception:  # a partial model folder: nothing to say about its frames
@@ -133,37 +166,7 @@ def prepare(options: PrepareOptions) -> dict:
     masks_key = cache.key(frames_key, masks_source)
     masks, mask_info, colmap_masks = _masks_stage(options, cache, masks_key, names, images,
                                                    parallax.frame_motion_px, work)
-
-    database, models_dir = work / "database.db", work / "models"
-    sfm = options.sfm
-    features_key = cache.key(masks_key, sfm.camera_model, sfm.max_features)
-    if not cache.done("features", features_key):
-        database.unlink(missing_ok=True)
-        extract_features(database, frame_dir, names, colmap_masks, sfm, options.progress)
-        cache.finish("features", features_key)
-    matches_key = cache.key(features_key, sfm.overlap, sfm.seed)
-    if cache.done("matches", matches_key):
-        verified = cache.extra("matches")["verified_pairs"]
-    else:
-        verified = match_frames(database, sfm, options.progress)
-        cache.finish("matches", matches_key, {"verified_pairs": verified})
-    mapping_key = cache.key(matches_key, sfm.as_dict())
-    model, best_dir = None, None
-    if cache.done("mapping", mapping_key) and cache.extra("mapping").get("best") is not None:
-        best_dir = models_dir / cache.extra("mapping")["best"]
-        model = read_model(best_dir)
-    else:
-        shutil.rmtree(models_dir, ignore_errors=True)
-        model = map_frames(database, frame_dir, models_dir, len(names), sfm, options.progress)
-        if model is not None:
-            best = next((p.name for p in sorted(models_dir.iterdir()) if p.is_dir()
-                         and read_model(p).num_reg_images() == model.num_reg_images()), None)
-            best_dir = models_dir / best if best is not None else None
-            if best_dir is None:  # pycolmap did not write it: keep it ourselves
-                best_dir = models_dir / "best"
-                best_dir.mkdir(parents=True)
-                model.write(str(best_dir))
-        cache.finish("mapping", mapping_key, {"best": best_dir.name if best_dir else None})
+    model, verified = _sfm_stages(options, cache, masks_key, names, colmap_masks, work)
     registered_count = 0 if model is None else int(model.num_reg_images())
     if registered_count < MIN_REGISTERED or model.num_points3D() < MIN_POINTS:
         raise explain_failure(parallax, registered_count, len(names), 0 if model is None else model.num_points3D())
@@ -177,11 +180,11 @@ def prepare(options: PrepareOptions) -> dict:
         "extracted_frames": len(names), "frame_size": list(images[0].shape[1::-1]),
         **model_statistics(model),
         "registered": registered,
-        "dropped": _dropped(names, set(registered), models_dir, best_dir),
+        "dropped": _dropped(names, set(registered), work / "models"),
         "times": {n: times[n] for n in registered},
         "verified_pairs": verified, "masks": mask_info, "parallax": parallax.as_dict(),
         "options": {"fps": options.fps, "max_frames": options.max_frames, "size": options.width,
-                    "masks": options.masks, "sfm": sfm.as_dict()},
+                    "masks": options.masks, "sfm": options.sfm.as_dict()},
         "reused_stages": list(cache.reused), "wall_seconds": round(time.perf_counter() - start, 2),
         "output": str(out),
     }
