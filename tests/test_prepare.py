@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 
 from baselines.data import DatasetError, load_scene
-from baselines.prepare.dataset import frame_times
+from baselines.data.colmap_compat import read_reconstruction
+from baselines.prepare.dataset import MEDIAN_DEPTH, frame_times, median_point_depth
 from baselines.prepare.evaluate import compare_with_truth, pose_errors, umeyama
 from baselines.prepare.frames import select_frames
 from benchmarks.prepare_synthetic import render_clip, run_prepare
@@ -102,6 +103,8 @@ def test_dataset_loads_with_times_and_masks(prepared):
     assert np.allclose([c.time for c in cameras], np.linspace(0, 1, FRAMES), atol=1e-6)
     assert all(c.mask is not None for c in cameras)
     assert (cameras[0].width, cameras[0].height) == (WIDTH, HEIGHT)
+    # rescaled to the simulator's scale (SfM's own is arbitrary)
+    assert median_point_depth(read_reconstruction(dataset / "sparse" / "0")) == pytest.approx(MEDIAN_DEPTH, rel=1e-6)
 
 
 def test_rerun_reuses_every_stage(clip, prepared):

@@ -5,6 +5,11 @@
     <out>/times.json              {"times": {"NNNNN.png": t}}: t in [0, 1] by source frame index,
                                   so dropping a frame leaves the others' times unchanged
     <out>/motion_masks/NNNNN.png  255 = moving (when masks were used)
+
+SfM fixes the scene only up to scale (COLMAP spreads the cameras over about 10 units). The model
+is rescaled so that the median depth of its points, seen from the registered cameras, is
+`MEDIAN_DEPTH` units: the scale of the simulator's scenes, on which the training configs were
+tuned (ReFlow's training diverged to NaN on an unscaled model whose median depth was about 30).
 """
 from __future__ import annotations
 
@@ -16,7 +21,31 @@ from typing import Sequence
 import cv2
 import numpy as np
 
+from ..data.colmap_compat import image_cam_from_world
+
 OUTPUTS = ("images", "sparse", "motion_masks", "times.json")
+MEDIAN_DEPTH = 5.0
+
+
+def median_point_depth(model) -> float:
+    """Median z of the model's points in the frames of its registered cameras (points in front only)."""
+    points = np.array([p.xyz for p in model.points3D.values()], np.float64).reshape(-1, 3)
+    depths = []
+    for image in model.images.values():
+        if image.has_pose:
+            z = (points @ image_cam_from_world(image)[:, :3].T + image_cam_from_world(image)[:, 3])[:, 2]
+            depths.append(z[z > 0])
+    found = np.concatenate(depths) if depths else np.zeros(0)
+    return float(np.median(found)) if len(found) else 1.0
+
+
+def rescale(model, median_depth: float = MEDIAN_DEPTH) -> float:
+    """Scale `model` in place (about the origin) to the given median point depth; returns the factor."""
+    import pycolmap
+
+    factor = median_depth / max(median_point_depth(model), 1e-12)
+    model.transform(pycolmap.Sim3d(factor, pycolmap.Rotation3d(), np.zeros(3)))
+    return factor
 
 
 def frame_times(names: Sequence[str]) -> dict[str, float]:

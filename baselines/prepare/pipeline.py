@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from .cache import StageCache, file_identity
-from .dataset import frame_times, write_dataset
+from .dataset import MEDIAN_DEPTH, frame_times, rescale, write_dataset
 from .errors import PrepareError
 from .frames import extract_frames, probe_source
 from .masks import colmap_mask, motion_masks
@@ -172,6 +172,7 @@ def prepare(options: PrepareOptions) -> dict:
         raise explain_failure(parallax, registered_count, len(names), 0 if model is None else model.num_points3D())
 
     registered = sorted(image.name for image in model.images.values() if image.has_pose)
+    scale = rescale(model)
     times = frame_times(names)
     write_dataset(out, model, frame_dir, registered, times, masks)
     report = {
@@ -179,7 +180,7 @@ def prepare(options: PrepareOptions) -> dict:
         "source_fps": info.fps, "source_size": [info.width, info.height],
         "extracted_frames": len(names), "frame_size": list(images[0].shape[1::-1]),
         **model_statistics(model),
-        "registered": registered,
+        "registered": registered, "scale_applied": scale, "median_point_depth": MEDIAN_DEPTH,
         "dropped": _dropped(names, set(registered), work / "models"),
         "times": {n: times[n] for n in registered},
         "verified_pairs": verified, "masks": mask_info, "parallax": parallax.as_dict(),
