@@ -74,6 +74,7 @@ def test_video_gives_cameras_matching_the_truth(clip, prepared):
     assert report["dropped"] == [] and report["points"] > 200
     assert 0 < report["mean_reprojection_error_px"] < 1.0
     assert report["camera"]["model"] == "SIMPLE_PINHOLE" and report["source_kind"] == "video"
+    assert read_reconstruction(dataset / "sparse" / "0").num_cameras() == 1  # one shared camera
     true_focal = truth(clip[0])[0]["K"][0][0]
     assert abs(report["camera"]["params"][0] / true_focal - 1) < 0.1
     errors = compare_with_truth(dataset, truth(clip[0]))
@@ -133,14 +134,19 @@ def test_training_runs_on_the_prepared_dataset(prepared, tmp_path):
 
 
 def test_unregistered_frame_is_dropped_and_times_stay(clip, tmp_path):
+    """A frame folder with user masks and one frame from nowhere."""
     folder = tmp_path / "frames"
     shutil.copytree(clip[0] / "images", folder)
     noise = np.random.default_rng(0).integers(0, 256, (HEIGHT, WIDTH, 3), dtype=np.uint8)
     cv2.imwrite(str(folder / "007.png"), noise)  # a frame from nowhere: cannot be registered
     dataset = tmp_path / "ds"
-    proc = run_prepare(folder, dataset, "--masks", "none", "--quiet")
+    user_masks = clip[0] / "motion_masks"  # the simulator's true masks, given as a user folder
+    proc = run_prepare(folder, dataset, "--masks", str(user_masks), "--quiet")
     assert proc.returncode == 0, proc.stderr
     report = json.loads((dataset / "prepare_report.json").read_text())
+    assert report["masks"]["source"] == f"folder:{user_masks}"
+    written = cv2.imread(str(dataset / "motion_masks" / "00003.png"), cv2.IMREAD_GRAYSCALE) > 0
+    assert np.array_equal(written, cv2.imread(str(user_masks / "003.png"), cv2.IMREAD_GRAYSCALE) > 0)
     assert [d["frame"] for d in report["dropped"]] == ["00007.png"]
     assert "dropped 1 frame(s): 00007.png" in proc.stdout
     scene = load_scene(dataset)
@@ -178,6 +184,10 @@ def test_missing_input_and_bad_options(clip, tmp_path):
     assert_one_line_error(quiet(tmp_path / "nothing.mp4", tmp_path / "out"), "input not found")
     assert_one_line_error(quiet(clip[1], tmp_path / "out", "--max-frames", "1"), "--max-frames")
     assert_one_line_error(quiet(clip[1], tmp_path / "out", "--masks", str(tmp_path / "nope")), "--masks")
+    few = tmp_path / "few_masks"
+    few.mkdir()
+    cv2.imwrite(str(few / "000.png"), np.zeros((HEIGHT, WIDTH), np.uint8))
+    assert_one_line_error(quiet(clip[1], tmp_path / "out2", "--masks", str(few)), "1 mask images", f"{FRAMES} frames")
     taken = tmp_path / "taken"
     taken.mkdir()
     (taken / "notes.txt").write_text("mine")
