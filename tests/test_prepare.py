@@ -95,6 +95,23 @@ def test_auto_masks_cover_the_moving_object(clip, prepared):
     assert sum(int((f & t).sum()) for f, t in zip(found, true)) / sum(int(t.sum()) for t in true) > 0.2
 
 
+def test_no_keypoints_on_masked_pixels(prepared):
+    """Auto masks reach pycolmap: no SIFT keypoint lies where a COLMAP mask says ignore."""
+    import pycolmap
+
+    work = prepared[0] / ".prepare"
+    masked_frames = 0
+    with pycolmap.Database.open(work / "database.db") as db:
+        for image in db.read_all_images():
+            ignore = cv2.imread(str(work / "colmap_masks" / f"{image.name}.png"), cv2.IMREAD_GRAYSCALE) == 0
+            masked_frames += bool(ignore.any())
+            xy = db.read_keypoints(image.image_id)[:, :2]
+            cols = np.clip(xy[:, 0].astype(int), 0, WIDTH - 1)
+            rows = np.clip(xy[:, 1].astype(int), 0, HEIGHT - 1)
+            assert not ignore[rows, cols].any(), image.name
+    assert masked_frames >= FRAMES // 2
+
+
 def test_dataset_loads_with_times_and_masks(prepared):
     dataset = prepared[0]
     scene = load_scene(dataset)
