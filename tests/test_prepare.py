@@ -222,6 +222,16 @@ def test_pure_rotation(tmp_path):
     assert_one_line_error(quiet(video, tmp_path / "out", "--masks", "none"), "only rotates", "try:")
 
 
+def test_too_few_matches(tmp_path):
+    folder = tmp_path / "noise"
+    folder.mkdir()
+    rng = np.random.default_rng(3)
+    for k in range(6):  # unrelated frames: nothing to match
+        cv2.imwrite(str(folder / f"{k:03d}.png"), rng.integers(0, 256, (HEIGHT, WIDTH, 3), dtype=np.uint8))
+    assert_one_line_error(quiet(folder, tmp_path / "out", "--masks", "none"), "structure from motion failed",
+                          "too few reliable matches", "try:")
+
+
 # --- units ----------------------------------------------------------------------------------
 
 

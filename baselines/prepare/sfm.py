@@ -111,8 +111,9 @@ def map_frames(database: Path, image_dir: Path, model_root: Path, total: int, op
     import pycolmap
 
     model_root.mkdir(parents=True, exist_ok=True)
-    # level 2: bundle adjustment's gauge warnings on degenerate input would drown the one-line error
-    with quiet_colmap_logs(2), tqdm(total=total, desc="mapping", unit="frame", disable=not progress) as bar:
+    # level 3 (fatal only): bundle adjustment's gauge warnings on degenerate input and "Failed to
+    # create any sparse model" would drown our one-line explanation
+    with quiet_colmap_logs(3), tqdm(total=total, desc="mapping", unit="frame", disable=not progress) as bar:
         def next_image() -> None:
             if bar.n < bar.total:
                 bar.update(1)
