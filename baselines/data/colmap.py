@@ -6,10 +6,17 @@ SIMPLE_PINHOLE cameras are exact; SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV 
 their distortion IGNORED (a warning is logged; undistort the images with COLMAP for exact
 results); other models are rejected. Images are ordered by name and timed i / (N - 1); with
 `eval`, every `llffhold`-th image (by name) is a test image. points3D is the point cloud.
+
+Optional files (both written by `python -m baselines.prepare`):
+- `times.json`: `{"times": {"<image name>": t, ...}}` with t in [0, 1] for EVERY image of the
+  model; replaces i / (N - 1), so frames dropped by SfM leave the others' times where they were.
+- `motion_masks/<image stem>.png`: per-image motion mask (non-zero = moving), one per image.
 """
 from __future__ import annotations
 
+import json
 import logging
+import math
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +56,48 @@ def _intrinsics(camera, source: str, warned: set[str]) -> np.ndarray:
     return K
 
 
+TIMES_FILE = "times.json"
+MASK_FOLDER = "motion_masks"
+
+
+def read_times(source: Path, names: list[str]) -> list[float] | None:
+    """Per-image times from `source/times.json` (None when absent); `DatasetError` when malformed."""
+    path = source / TIMES_FILE
+    if not path.is_file():
+        return None
+    try:
+        table = json.loads(path.read_text())["times"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise DatasetError(f"{path}: expected {{\"times\": {{image name: time}}}} ({exc})") from None
+    if not isinstance(table, dict):
+        raise DatasetError(f"{path}: 'times' must map image names to times")
+    times = []
+    for name in names:
+        if name not in table:
+            raise DatasetError(f"{path} has no time for image '{name}'")
+        value = table[name]
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+                or not 0.0 <= value <= 1.0:
+            raise DatasetError(f"{path}: time of '{name}' is {value!r}, expected a number in [0, 1]")
+        times.append(float(value))
+    return times
+
+
+def find_masks(source: Path, names: list[str]) -> list[Path] | None:
+    """`motion_masks/<stem>.<ext>` per image (None without the folder); `DatasetError` for a missing one."""
+    folder = source / MASK_FOLDER
+    if not folder.is_dir():
+        return None
+    by_stem = {p.stem: p for p in folder.iterdir() if p.is_file()}
+    paths = []
+    for name in names:
+        stem = Path(name).with_suffix("").name
+        if stem not in by_stem:
+            raise DatasetError(f"{folder} has no mask for image '{name}' (expected {stem}.png)")
+        paths.append(by_stem[stem])
+    return paths
+
+
 def read_colmap(source_path: Path | str, images: str = "images", resolution: int | float = -1,
                 eval: bool = False, white_background: bool = False, llffhold: int = 8) -> SceneInfo:
     """Read a COLMAP scene (see the module docstring)."""
@@ -64,6 +113,9 @@ def read_colmap(source_path: Path | str, images: str = "images", resolution: int
     if not colmap_images:
         raise DatasetError(f"COLMAP model {model_dir} has no images")
     n = len(colmap_images)
+    names = [image.name for image in colmap_images]
+    times = read_times(source, names)
+    masks = find_masks(source, names)
     warned: set[str] = set()
     specs = []
     for i, image in enumerate(colmap_images):
@@ -76,7 +128,8 @@ def read_colmap(source_path: Path | str, images: str = "images", resolution: int
         specs.append(ViewSpec(
             image_path=image_dir / image.name, image_name=Path(image.name).with_suffix("").as_posix(),
             K=_intrinsics(camera, str(model_dir), warned), calibrated_size=(int(camera.width), int(camera.height)),
-            viewmat=viewmat, time=i / (n - 1) if n > 1 else 0.0, frame_index=i, camera_id=int(image.camera_id)))
+            viewmat=viewmat, time=times[i] if times is not None else (i / (n - 1) if n > 1 else 0.0),
+            frame_index=i, camera_id=int(image.camera_id), mask_path=masks[i] if masks is not None else None))
     points = np.array([p.xyz for p in reconstruction.points3D.values()], np.float64).reshape(-1, 3)
     colours = np.array([p.color for p in reconstruction.points3D.values()], np.float32).reshape(-1, 3) / 255.0
     require_finite(points, model_dir, "point coordinate")
@@ -85,4 +138,5 @@ def read_colmap(source_path: Path | str, images: str = "images", resolution: int
     train, test = llff_holdout(n, eval, llffhold)
     return assemble_scene(cameras, train, test, dataset_type="colmap", source_path=source, num_frames=n,
                           point_cloud=PointCloud(points, colours) if len(points) else None,
-                          metadata={"model_dir": str(model_dir), "image_folder": images})
+                          metadata={"model_dir": str(model_dir), "image_folder": images,
+                                    "times": TIMES_FILE if times is not None else "image order"})

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -146,13 +146,35 @@ def estimate_motion_masks(images: Sequence[np.ndarray], Ks: Sequence[np.ndarray]
     if not (len(Ks) == len(viewmats) == n) or (depths is not None and len(depths) != n):
         raise ValueError(f"estimate_motion_masks: {n} images but {len(Ks)} intrinsics, {len(viewmats)} poses"
                          + (f", {len(depths)} depth maps" if depths is not None else ""))
+
+    def pair_error(a: int, b: int, fwd: np.ndarray) -> np.ndarray:
+        return static_scene_error(fwd, Ks[a], viewmats[a], Ks[b], viewmats[b], None if depths is None else depths[a])
+
+    masks, report = masks_from_pair_errors(images, pair_error, options)
+    report.epipolar_only = depths is None
+    return masks, report
+
+
+PairError = Callable[[int, int, np.ndarray], np.ndarray]
+
+
+def masks_from_pair_errors(images: Sequence[np.ndarray], pair_error: PairError,
+                           options: MotionMaskOptions | None = None) -> tuple[list[np.ndarray], MaskReport]:
+    """Masks of `images` from a per-pair static-scene error (the recipe of the module docstring).
+
+    `pair_error(a, b, flow_a_to_b)` returns [H, W] pixels: how far each pixel of frame a lands
+    from where a static scene allows in frame b (camera-aware here; `baselines.prepare.masks`
+    passes an uncalibrated, fitted-geometry version). Images must share one size.
+    """
+    options = options or MotionMaskOptions()
+    n = len(images)
     if n == 0:
         return [], MaskReport()
     shape = np.asarray(images[0]).shape[:2]
     for k, image in enumerate(images):
         if np.asarray(image).shape[:2] != shape:
             raise ValueError(f"estimate_motion_masks: frame {k} is {np.asarray(image).shape[:2]}, frame 0 is {shape}")
-    report = MaskReport(epipolar_only=depths is None, pairs=[[] for _ in range(n)])
+    report = MaskReport(pairs=[[] for _ in range(n)])
     masks = []
     for a in range(n):
         normalised, raw = [], []
@@ -161,8 +183,7 @@ def estimate_motion_masks(images: Sequence[np.ndarray], Ks: Sequence[np.ndarray]
             if not 0 <= b < n or b == a:
                 continue
             fwd, bwd = flow_pair(images[a], images[b])
-            error = static_scene_error(fwd, Ks[a], viewmats[a], Ks[b], viewmats[b],
-                                       None if depths is None else depths[a])
+            error = pair_error(a, b, fwd)
             reliable = consistent(fwd, bwd) & np.isfinite(error)
             if not reliable.any():
                 continue

@@ -1,0 +1,196 @@
+"""`prepare()`: video or frame folder -> COLMAP-layout dataset, stage by stage, reusing what is done.
+
+Stages (each skipped when its key, see `cache.py`, matches a finished run in `<out>/.prepare/`):
+frames -> parallax check -> masks -> features -> matching -> mapping; then the dataset and the
+report are written. Checks that need no decoding (missing input, empty or mixed-size folder,
+unreadable video, bad options, output folder owned by something else) run first.
+"""
+from __future__ import annotations
+
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .cache import StageCache, file_identity
+from .dataset import MEDIAN_DEPTH, frame_times, rescale, write_dataset
+from .errors import PrepareError
+from .frames import extract_frames, probe_source
+from .masks import colmap_mask, motion_masks
+from .parallax import explain_failure, measure_parallax, require_camera_motion
+from .report import model_statistics, summary_lines, write_report
+from .sfm import CAMERA_MODELS, SfmOptions, extract_features, map_frames, match_frames, read_model
+
+WORK_DIR = ".prepare"
+MIN_REGISTERED = 3  # fewer registered frames, or fewer 3D points, is a failed reconstruction
+MIN_POINTS = 20
+BEST_MODEL = "best"
+
+
+@dataclass
+class PrepareOptions:
+    """Command-line options of `python -m baselines.prepare` (see `__main__.py`)."""
+
+    source: Path
+    output: Path
+    fps: float | None = None
+    max_frames: int | None = None
+    width: int | None = 640  # --size
+    masks: str = "auto"
+    sfm: SfmOptions = field(default_factory=SfmOptions)
+    progress: bool = True
+
+    def validate(self) -> None:
+        if self.fps is not None and not self.fps > 0:
+            raise PrepareError(f"--fps {self.fps}: must be positive")
+        if self.max_frames is not None and self.max_frames < 2:
+            raise PrepareError(f"--max-frames {self.max_frames}: must be at least 2")
+        if self.width is not None and self.width < 32:
+            raise PrepareError(f"--size {self.width}: must be at least 32 pixels")
+        if self.sfm.camera_model not in CAMERA_MODELS:
+            raise PrepareError(f"--camera-model {self.sfm.camera_model}: expected one of {', '.join(CAMERA_MODELS)}")
+        if self.masks not in ("auto", "none") and not Path(self.masks).is_dir():
+            raise PrepareError(f"--masks {self.masks}: expected auto, none or a folder of mask images")
+        output = Path(self.output)
+        if output.exists() and (not output.is_dir() or (any(output.iterdir()) and not (output / WORK_DIR).is_dir())):
+            raise PrepareError(f"output {output} exists and was not written by prepare",
+                               "choose another -o folder or empty it")
+
+
+def _read_frames(frame_dir: Path, names: list[str]) -> list[np.ndarray]:
+    return [cv2.imread(str(frame_dir / n), cv2.IMREAD_COLOR) for n in names]
+
+
+def _masks_stage(options: PrepareOptions, cache: StageCache, key: str, names: list[str],
+                 images: list[np.ndarray], frame_motion_px: float | None, work: Path) -> tuple[dict[str, np.ndarray] | None, dict, Path | None]:
+    """(masks by frame name or None, mask info, COLMAP mask folder or None)."""
+    mask_dir, colmap_dir = work / "masks", work / "colmap_masks"
+    if cache.done("masks", key):
+        info = cache.extra("masks")
+        if info["source"] == "none":
+            return None, info, None
+        masks = {n: cv2.imread(str(mask_dir / n), cv2.IMREAD_GRAYSCALE) > 0 for n in names}
+        return masks, info, colmap_dir
+    for folder in (mask_dir, colmap_dir):
+        shutil.rmtree(folder, ignore_errors=True)
+    found, info = motion_masks(images, options.masks, frame_motion_px, options.progress)
+    masks = None if found is None else dict(zip(names, found))
+    if masks is not None:
+        mask_dir.mkdir(parents=True)
+        colmap_dir.mkdir(parents=True)
+        for name, mask in masks.items():
+            cv2.imwrite(str(mask_dir / name), np.where(mask, 255, 0).astype(np.uint8))
+            cv2.imwrite(str(colmap_dir / f"{name}.png"), colmap_mask(mask))
+    cache.finish("masks", key, info.as_dict())
+    return masks, info.as_dict(), colmap_dir if masks is not None else None
+
+
+def _sfm_stages(options: PrepareOptions, cache: StageCache, masks_key: str, names: list[str],
+                colmap_masks: Path | None, work: Path):
+    """(largest model or None, verified pairs): features, matching and mapping, each reused when done.
+
+    pycolmap writes every model to `models/<k>`; the largest is also kept as `models/best`.
+    """
+    database, models_dir, frame_dir = work / "database.db", work / "models", work / "frames"
+    sfm = options.sfm
+    features_key = cache.key(masks_key, sfm.camera_model, sfm.max_features)
+    if not cache.done("features", features_key):
+        database.unlink(missing_ok=True)
+        extract_features(database, frame_dir, names, colmap_masks, sfm, options.progress)
+        cache.finish("features", features_key)
+    matches_key = cache.key(features_key, sfm.overlap, sfm.seed)
+    if cache.done("matches", matches_key):
+        verified = cache.extra("matches")["verified_pairs"]
+    else:
+        verified = match_frames(database, sfm, options.progress)
+        cache.finish("matches", matches_key, {"verified_pairs": verified})
+    mapping_key = cache.key(matches_key, sfm.as_dict())
+    best_dir = models_dir / BEST_MODEL
+    if cache.done("mapping", mapping_key) and best_dir.is_dir():
+        return read_model(best_dir), verified
+    shutil.rmtree(models_dir, ignore_errors=True)
+    model = map_frames(database, frame_dir, models_dir, len(names), sfm, options.progress)
+    if model is not None:
+        best_dir.mkdir(parents=True)
+        model.write(str(best_dir))
+    cache.finish("mapping", mapping_key)
+    return model, verified
+
+
+def _dropped(names: list[str], registered: set[str], models_dir: Path) -> list[dict]:
+    """Each unregistered frame with the reason."""
+    elsewhere: dict[str, int] = {}
+    for folder in sorted(p for p in models_dir.iterdir() if p.is_dir() and p.name != BEST_MODEL):
+        try:
+            other = read_model(folder)
+        except Exception:  # a partial model folder: nothing to say about its frames
+            continue
+        for image in other.images.values():
+            elsewhere[image.name] = int(other.num_reg_images())
+    dropped = []
+    for name in names:
+        if name in registered:
+            continue
+        reason = (f"registered only in a separate smaller model ({elsewhere[name]} frames)" if name in elsewhere
+                  else "not registered: too few matches with the reconstruction")
+        dropped.append({"frame": name, "reason": reason})
+    return dropped
+
+
+def prepare(options: PrepareOptions) -> dict:
+    """Run every stage (see the module docstring); returns the report (also written to disk)."""
+    start = time.perf_counter()
+    options.validate()
+    info = probe_source(Path(options.source))
+    out = Path(options.output)
+    work = out / WORK_DIR
+    cache = StageCache(work)
+    frame_dir = work / "frames"
+
+    frames_key = cache.key("frames", file_identity(options.source), options.width, options.fps, options.max_frames)
+    if cache.done("frames", frames_key):
+        names = cache.extra("frames")["names"]
+    else:
+        shutil.rmtree(frame_dir, ignore_errors=True)
+        names = extract_frames(Path(options.source), info, frame_dir, options.width, options.fps,
+                               options.max_frames, options.progress)
+        cache.finish("frames", frames_key, {"names": names})
+    images = _read_frames(frame_dir, names)
+    parallax = measure_parallax(images)
+    require_camera_motion(parallax)
+
+    masks_source = options.masks if options.masks in ("auto", "none") else file_identity(Path(options.masks))
+    masks_key = cache.key(frames_key, masks_source)
+    masks, mask_info, colmap_masks = _masks_stage(options, cache, masks_key, names, images,
+                                                   parallax.frame_motion_px, work)
+    model, verified = _sfm_stages(options, cache, masks_key, names, colmap_masks, work)
+    registered_count = 0 if model is None else int(model.num_reg_images())
+    if registered_count < MIN_REGISTERED or model.num_points3D() < MIN_POINTS:
+        raise explain_failure(parallax, registered_count, len(names), 0 if model is None else model.num_points3D())
+
+    registered = sorted(image.name for image in model.images.values() if image.has_pose)
+    scale = rescale(model)
+    times = frame_times(names)
+    write_dataset(out, model, frame_dir, registered, times, masks)
+    report = {
+        "source": str(options.source), "source_kind": info.kind, "source_frames": info.frame_count,
+        "source_fps": info.fps, "source_size": [info.width, info.height],
+        "extracted_frames": len(names), "frame_size": list(images[0].shape[1::-1]),
+        **model_statistics(model),
+        "registered": registered, "scale_applied": scale, "median_point_depth": MEDIAN_DEPTH,
+        "dropped": _dropped(names, set(registered), work / "models"),
+        "times": {n: times[n] for n in registered},
+        "verified_pairs": verified, "masks": mask_info, "parallax": parallax.as_dict(),
+        "options": {"fps": options.fps, "max_frames": options.max_frames, "size": options.width,
+                    "masks": options.masks, "sfm": options.sfm.as_dict()},
+        "reused_stages": list(cache.reused), "wall_seconds": round(time.perf_counter() - start, 2),
+        "output": str(out),
+    }
+    write_report(out, report)
+    return report
+
+
+__all__ = ["PrepareOptions", "prepare", "summary_lines"]

@@ -1,0 +1,46 @@
+"""Stage 5: `prepare_report.json` and the printed summary.
+
+The report says what was extracted, which frames were registered, which were dropped and why,
+the mean reprojection error (pixels), the number of 3D points, the shared camera, the parallax
+check, the masks' coverage, which stages were reused, and the options used.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+
+def model_statistics(model) -> dict:
+    """Registered images, points, mean reprojection error and track length of a reconstruction."""
+    camera = next(iter(model.cameras.values()))
+    return {"registered_frames": int(model.num_reg_images()), "points": int(model.num_points3D()),
+            "mean_reprojection_error_px": float(model.compute_mean_reprojection_error()),
+            "mean_track_length": float(model.compute_mean_track_length()),
+            "camera": {"model": getattr(camera.model, "name", str(camera.model)), "width": int(camera.width),
+                       "height": int(camera.height), "params": [float(p) for p in camera.params]}}
+
+
+def write_report(out: Path, report: dict) -> Path:
+    """`out/prepare_report.json`."""
+    path = out / "prepare_report.json"
+    path.write_text(json.dumps(report, indent=1))
+    return path
+
+
+def summary_lines(report: dict) -> list[str]:
+    """Human summary of a report (printed at the end of a run)."""
+    lines = [f"prepare: {report['registered_frames']}/{report['extracted_frames']} frames registered, "
+             f"mean reprojection error {report['mean_reprojection_error_px']:.3f} px, "
+             f"{report['points']} points, camera {report['camera']['model']} "
+             f"f={report['camera']['params'][0]:.1f} px ({report['camera']['width']}x{report['camera']['height']})",
+             f"  masks: {report['masks']['source']} (mean coverage {report['masks']['mean_coverage']:.1%})"]
+    dropped = report["dropped"]
+    if dropped:
+        lines.append(f"  dropped {len(dropped)} frame(s): " + ", ".join(f"{d['frame']} ({d['reason']})" for d in dropped[:8])
+                     + (" ..." if len(dropped) > 8 else ""))
+    else:
+        lines.append("  dropped: none")
+    if report["reused_stages"]:
+        lines.append(f"  reused: {', '.join(report['reused_stages'])}")
+    lines.append(f"  dataset: {report['output']}  (python train.py -s {report['output']})")
+    return lines

@@ -1,0 +1,280 @@
+"""`python -m baselines.prepare`: a synthetic .mp4 with known cameras -> COLMAP dataset -> train.py.
+
+The clip is rendered by the simulator (orbiting camera, a large box moving across the view;
+`benchmarks/prepare_synthetic.py`), written with OpenCV, and prepared in a subprocess like a
+user would. Recovered cameras must match the truth up to a similarity: rotation error < 2
+degrees and centre error < 5% of the trajectory's extent. Bad inputs must give ONE line
+(`error: ...`), exit code 2 and no traceback.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from baselines.data import DatasetError, load_scene
+from baselines.data.colmap_compat import read_reconstruction
+from baselines.prepare.dataset import MEDIAN_DEPTH, frame_times, median_point_depth
+from baselines.prepare.evaluate import compare_with_truth, pose_errors, umeyama
+from baselines.prepare.frames import select_frames
+from benchmarks.prepare_synthetic import render_clip, run_prepare
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+FRAMES, WIDTH, HEIGHT = 20, 160, 120
+ROTATION_TOL_DEG, POSITION_TOL = 2.0, 0.05
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    """(scene folder with ground truth, .mp4) of the orbiting-camera clip."""
+    return render_clip(tmp_path_factory.mktemp("clip"), frames=FRAMES, width=WIDTH, height=HEIGHT)
+
+
+@pytest.fixture(scope="module")
+def prepared(clip, tmp_path_factory):
+    """(dataset folder, completed process) of prepare on the clip, masks auto."""
+    dataset = tmp_path_factory.mktemp("prepared") / "clip"
+    return dataset, run_prepare(clip[1], dataset, "--size", str(WIDTH), "--masks", "auto", "--quiet")
+
+
+def truth(scene_dir: Path) -> list[dict]:
+    return json.loads((scene_dir / "gt" / "cameras.json").read_text())["frames"]
+
+
+def quiet(source: Path, out: Path, *extra: str) -> subprocess.CompletedProcess:
+    """prepare without progress bars: stderr holds only what the user must read."""
+    return run_prepare(source, out, *extra, "--quiet")
+
+
+def assert_one_line_error(proc: subprocess.CompletedProcess, *expected: str) -> str:
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), proc.stderr
+    assert "Traceback" not in proc.stderr
+    for text in expected:
+        assert text in lines[0], lines[0]
+    return lines[0]
+
+
+# --- the full path --------------------------------------------------------------------------
+
+
+def test_video_gives_cameras_matching_the_truth(clip, prepared):
+    dataset, proc = prepared
+    assert proc.returncode == 0, proc.stderr
+    assert f"{FRAMES}/{FRAMES} frames registered" in proc.stdout
+    report = json.loads((dataset / "prepare_report.json").read_text())
+    assert report["registered_frames"] == report["extracted_frames"] == FRAMES
+    assert report["dropped"] == [] and report["points"] > 200
+    assert 0 < report["mean_reprojection_error_px"] < 1.0
+    assert report["camera"]["model"] == "SIMPLE_PINHOLE" and report["source_kind"] == "video"
+    assert read_reconstruction(dataset / "sparse" / "0").num_cameras() == 1  # one shared camera
+    true_focal = truth(clip[0])[0]["K"][0][0]
+    assert abs(report["camera"]["params"][0] / true_focal - 1) < 0.1
+    errors = compare_with_truth(dataset, truth(clip[0]))
+    assert errors["frames"] == FRAMES
+    assert errors["rotation_error_deg_max"] < ROTATION_TOL_DEG, errors
+    assert errors["position_error_rel_max"] < POSITION_TOL, errors
+
+
+def test_auto_masks_cover_the_moving_object(clip, prepared):
+    dataset = prepared[0]
+    found = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) > 0 for p in sorted((dataset / "motion_masks").glob("*.png"))]
+    true = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) > 0 for p in sorted((clip[0] / "motion_masks").glob("*.png"))]
+    assert len(found) == len(true) == FRAMES
+    near = [cv2.dilate(t.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0 for t in true]
+    hits = sum(int((f & n).sum()) for f, n in zip(found, near))
+    total = sum(int(f.sum()) for f in found)
+    assert total > 0 and hits / total > 0.6  # what is masked is mostly (next to) the moving box
+    assert sum(int((f & t).sum()) for f, t in zip(found, true)) / sum(int(t.sum()) for t in true) > 0.2
+
+
+def test_no_keypoints_on_masked_pixels(prepared):
+    """Auto masks reach pycolmap: no SIFT keypoint lies where a COLMAP mask says ignore."""
+    import pycolmap
+
+    work = prepared[0] / ".prepare"
+    masked_frames = 0
+    with pycolmap.Database.open(work / "database.db") as db:
+        for image in db.read_all_images():
+            ignore = cv2.imread(str(work / "colmap_masks" / f"{image.name}.png"), cv2.IMREAD_GRAYSCALE) == 0
+            masked_frames += bool(ignore.any())
+            xy = db.read_keypoints(image.image_id)[:, :2]
+            cols = np.clip(xy[:, 0].astype(int), 0, WIDTH - 1)
+            rows = np.clip(xy[:, 1].astype(int), 0, HEIGHT - 1)
+            assert not ignore[rows, cols].any(), image.name
+    assert masked_frames >= FRAMES // 2
+
+
+def test_dataset_loads_with_times_and_masks(prepared):
+    dataset = prepared[0]
+    scene = load_scene(dataset)
+    assert scene.dataset_type == "colmap" and scene.metadata["times"] == "times.json"
+    cameras = sorted(scene.train_cameras + scene.test_cameras, key=lambda c: c.time)
+    assert len(cameras) == FRAMES
+    assert np.allclose([c.time for c in cameras], np.linspace(0, 1, FRAMES), atol=1e-6)
+    assert all(c.mask is not None for c in cameras)
+    assert (cameras[0].width, cameras[0].height) == (WIDTH, HEIGHT)
+    # rescaled to the simulator's scale (SfM's own is arbitrary)
+    assert median_point_depth(read_reconstruction(dataset / "sparse" / "0")) == pytest.approx(MEDIAN_DEPTH, rel=1e-6)
+
+
+def test_rerun_reuses_every_stage(clip, prepared):
+    dataset, first = prepared
+    before = json.loads((dataset / "prepare_report.json").read_text())
+    again = run_prepare(clip[1], dataset, "--size", str(WIDTH), "--masks", "auto", "--quiet")
+    assert again.returncode == 0, again.stderr
+    report = json.loads((dataset / "prepare_report.json").read_text())
+    assert report["reused_stages"] == ["frames", "masks", "features", "matches", "mapping"]
+    assert report["registered"] == before["registered"] and report["points"] == before["points"]
+    assert "reused: frames, masks, features, matches, mapping" in again.stdout
+
+
+def test_training_runs_on_the_prepared_dataset(prepared, tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.run(
+        [sys.executable, str(REPO_ROOT / "train.py"), "-s", str(prepared[0]), "-m", str(out),
+         "--configs", str(REPO_ROOT / "arguments/synthetic/default.py"), "--coarse_iterations", "6",
+         "--iterations", "8", "--quiet", "--test_iterations", "[]", "--save_iterations", "8", "--eval",
+         "--log_every", "4"],
+        cwd=REPO_ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    results = json.loads((out / "results.json").read_text())
+    assert np.isfinite(results["ours_8"]["PSNR"])
+    assert (out / "point_cloud" / "iteration_8" / "point_cloud.ply").is_file()
+
+
+def test_unregistered_frame_is_dropped_and_times_stay(clip, tmp_path):
+    """A frame folder with user masks and one frame from nowhere."""
+    folder = tmp_path / "frames"
+    shutil.copytree(clip[0] / "images", folder)
+    noise = np.random.default_rng(0).integers(0, 256, (HEIGHT, WIDTH, 3), dtype=np.uint8)
+    cv2.imwrite(str(folder / "007.png"), noise)  # a frame from nowhere: cannot be registered
+    dataset = tmp_path / "ds"
+    user_masks = clip[0] / "motion_masks"  # the simulator's true masks, given as a user folder
+    proc = run_prepare(folder, dataset, "--masks", str(user_masks), "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads((dataset / "prepare_report.json").read_text())
+    assert report["masks"]["source"] == f"folder:{user_masks}"
+    written = cv2.imread(str(dataset / "motion_masks" / "00003.png"), cv2.IMREAD_GRAYSCALE) > 0
+    assert np.array_equal(written, cv2.imread(str(user_masks / "003.png"), cv2.IMREAD_GRAYSCALE) > 0)
+    assert [d["frame"] for d in report["dropped"]] == ["00007.png"]
+    assert "dropped 1 frame(s): 00007.png" in proc.stdout
+    scene = load_scene(dataset)
+    times = sorted(c.time for c in scene.train_cameras)
+    expected = [i / (FRAMES - 1) for i in range(FRAMES) if i != 7]
+    assert np.allclose(times, expected, atol=1e-6)
+    assert not (dataset / "images" / "00007.png").exists()
+
+
+# --- failures: one line, exit code 2 ----------------------------------------------------------
+
+
+def test_unreadable_video(tmp_path):
+    bad = tmp_path / "broken.mp4"
+    bad.write_bytes(b"\x00\x00\x00\x18ftypmp42 not really a video")
+    assert_one_line_error(quiet(bad, tmp_path / "out"), "cannot read video", "broken.mp4")
+    assert not (tmp_path / "out").exists()
+
+
+def test_empty_folder(tmp_path):
+    (tmp_path / "empty").mkdir()
+    assert_one_line_error(quiet(tmp_path / "empty", tmp_path / "out"), "holds no images")
+
+
+def test_mixed_image_sizes(clip, tmp_path):
+    folder = tmp_path / "mixed"
+    folder.mkdir()
+    image = cv2.imread(str(clip[0] / "images" / "000.png"))
+    cv2.imwrite(str(folder / "a.png"), image)
+    cv2.imwrite(str(folder / "b.png"), cv2.resize(image, (80, 60)))
+    assert_one_line_error(quiet(folder, tmp_path / "out"), "mixes image sizes", "160x120", "80x60")
+
+
+def test_missing_input_and_bad_options(clip, tmp_path):
+    assert_one_line_error(quiet(tmp_path / "nothing.mp4", tmp_path / "out"), "input not found")
+    assert_one_line_error(quiet(clip[1], tmp_path / "out", "--max-frames", "1"), "--max-frames")
+    assert_one_line_error(quiet(clip[1], tmp_path / "out", "--masks", str(tmp_path / "nope")), "--masks")
+    few = tmp_path / "few_masks"
+    few.mkdir()
+    cv2.imwrite(str(few / "000.png"), np.zeros((HEIGHT, WIDTH), np.uint8))
+    assert_one_line_error(quiet(clip[1], tmp_path / "out2", "--masks", str(few)), "1 mask images", f"{FRAMES} frames")
+    taken = tmp_path / "taken"
+    taken.mkdir()
+    (taken / "notes.txt").write_text("mine")
+    assert_one_line_error(quiet(clip[1], taken), "was not written by prepare")
+
+
+def test_static_camera(tmp_path):
+    _, video = render_clip(tmp_path, frames=8, width=WIDTH, height=HEIGHT, camera="static")
+    assert_one_line_error(quiet(video, tmp_path / "out", "--masks", "none"), "camera does not move", "try:")
+    assert not (tmp_path / "out" / ".prepare" / "database.db").exists()  # stopped before SfM
+
+
+def test_pure_rotation(tmp_path):
+    _, video = render_clip(tmp_path, frames=10, width=WIDTH, height=HEIGHT, camera="pan")
+    assert_one_line_error(quiet(video, tmp_path / "out", "--masks", "none"), "only rotates", "try:")
+
+
+def test_too_few_matches(tmp_path):
+    folder = tmp_path / "noise"
+    folder.mkdir()
+    rng = np.random.default_rng(3)
+    for k in range(6):  # unrelated frames: nothing to match
+        cv2.imwrite(str(folder / f"{k:03d}.png"), rng.integers(0, 256, (HEIGHT, WIDTH, 3), dtype=np.uint8))
+    assert_one_line_error(quiet(folder, tmp_path / "out", "--masks", "none"), "structure from motion failed",
+                          "too few reliable matches", "try:")
+
+
+# --- units ----------------------------------------------------------------------------------
+
+
+def test_umeyama_recovers_a_similarity():
+    rng = np.random.default_rng(1)
+    source = rng.normal(size=(10, 3))
+    angle = 0.7
+    rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    target = 2.5 * source @ rotation.T + np.array([1.0, -2.0, 0.5])
+    scale, found, translation = umeyama(source, target)
+    assert scale == pytest.approx(2.5) and np.allclose(found, rotation) and np.allclose(translation, [1, -2, 0.5])
+
+
+def test_pose_errors_see_a_wrong_camera():
+    rng = np.random.default_rng(2)
+    true = []
+    for k in range(6):
+        viewmat = np.eye(4)
+        viewmat[:3, 3] = [k * 0.3, 0.1 * k ** 2, 2.0 + rng.normal() * 0.1]
+        true.append(viewmat)
+    moved = [v.copy() for v in true]
+    assert pose_errors(moved, true)["rotation_error_deg_max"] < 1e-4
+    tilt = np.deg2rad(5.0)
+    moved[3][:3, :3] = np.array([[1, 0, 0], [0, np.cos(tilt), -np.sin(tilt)], [0, np.sin(tilt), np.cos(tilt)]])
+    errors = pose_errors(moved, true)
+    assert errors["rotation_error_deg_max"] > 3.0 and errors["relative_rotation_error_deg_max"] > 4.9
+
+
+def test_frame_selection_and_times():
+    assert select_frames(10, 30.0, 10.0, None) == [0, 3, 6, 9]
+    assert select_frames(100, None, None, 5) == [0, 25, 50, 74, 99]
+    assert frame_times(["00000.png", "00003.png", "00006.png"]) == {"00000.png": 0.0, "00003.png": 0.5, "00006.png": 1.0}
+
+
+def test_reader_rejects_bad_times(prepared, tmp_path):
+    copy = tmp_path / "copy"
+    shutil.copytree(prepared[0], copy, ignore=shutil.ignore_patterns(".prepare"))
+    table = json.loads((copy / "times.json").read_text())
+    del table["times"]["00004.png"]
+    (copy / "times.json").write_text(json.dumps(table))
+    with pytest.raises(DatasetError, match="no time for image '00004.png'"):
+        load_scene(copy)
+    table["times"]["00004.png"] = 1.5
+    (copy / "times.json").write_text(json.dumps(table))
+    with pytest.raises(DatasetError, match="expected a number in"):
+        load_scene(copy)
