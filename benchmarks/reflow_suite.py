@@ -5,7 +5,8 @@
 
 Each (scene, method) is an ordinary `train.py` run in `OUT/<scene>/<method>` with the scene's
 synthetic config (`arguments/synthetic/default.py`, ReFlow: `arguments/synthetic/reflow.py`), the
-full schedule. A run whose `results.json` exists is reused (a killed sweep resumes). The baseline's
+full schedule; `reflow_no_comp_init` is ReFlow without its complete canonical space (part 1
+alone). A run whose `results.json` exists is reused (a killed sweep resumes). The baseline's
 flow is measured afterwards with `python -m reflow_plugin.evaluate` (the same renderer ReFlow's
 own evaluation uses). Prints one Markdown table (per scene and mean) and writes it with the raw
 figures to `OUT/suite.md` / `OUT/suite.json`. `--jobs 2` runs two trainings at once with one
@@ -29,6 +30,8 @@ SCENES = ("balloon", "playground", "skating", "truck", "umbrella")
 METHODS = {
     "baseline": ["--configs", "arguments/synthetic/default.py"],
     "reflow": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow"],
+    # part 1 alone: the host's triangulated cloud plus keyframe seeds instead of the canonical space
+    "reflow_no_comp_init": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow", "--disable", "comp_init"],
 }
 
 

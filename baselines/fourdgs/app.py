@@ -18,13 +18,13 @@ from typing import Callable
 import numpy as np
 import torch
 
+from .family_config import default_config, log_decision, strip_bare_defaults
 from .evaluate import EvalResult, evaluate_cameras, render_video, write_metrics
 from .plugins import Plugin, load_plugin_class, resolve_components
 from .trainer import Trainer, TrainResult
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 EMBEDDED_SCENE = "skating"
-EMBEDDED_CONFIG = REPO_ROOT / "arguments" / "synthetic" / "default.py"
 log = logging.getLogger("train")
 
 
@@ -53,6 +53,18 @@ def _has_flag(argv: list[str], *names: str) -> bool:
     return any(a == n or a.startswith(n + "=") for a in argv for n in names)
 
 
+def _flag_value(argv: list[str], *names: str) -> str | None:
+    """The last value of a single-valued flag (``-s X`` or ``-s=X``), or None."""
+    value = None
+    for i, arg in enumerate(argv):
+        for name in names:
+            if arg == name and i + 1 < len(argv):
+                value = argv[i + 1]
+            elif arg.startswith(name + "="):
+                value = arg.split("=", 1)[1]
+    return value
+
+
 def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)
@@ -62,15 +74,27 @@ def seed_everything(seed: int) -> None:
 def build_trainer(argv: list[str]) -> Trainer:
     """Parse, validate and load everything a run needs; return a Trainer ready to train."""
     from arguments import parse_train_args, peek_plugins, write_cfg_args
+    from arguments.saved import model_dir_of_checkpoint
     from baselines.data import load_scene
 
-    argv = list(argv)
+    argv, bare_defaults = strip_bare_defaults(list(argv))
     embedded = not _has_flag(argv, "-s", "--source_path")
-    if embedded and not _has_flag(argv, "--configs"):
-        argv += ["--configs", str(EMBEDDED_CONFIG)]
 
     # Plugins first: they contribute parameter groups that the full parse must know.
-    plugin_classes = [load_plugin_class(name) for name in peek_plugins(argv)]
+    plugin_names = peek_plugins(argv)
+    plugin_classes = [load_plugin_class(name) for name in plugin_names]
+    decision = None
+    old_run = model_dir_of_checkpoint(_flag_value(argv, "--start_checkpoint"))
+    if not bare_defaults and not _has_flag(argv, "--configs") and old_run is None:
+        # 4DGS's bare defaults fit no dataset: the detected family's config (family_config.py);
+        # a run continued from an output folder takes that folder's saved configuration instead
+        source_flag = _flag_value(argv, "-s", "--source_path") or ""
+        source = REPO_ROOT / "data" / "synthetic" / EMBEDDED_SCENE if embedded else Path(source_flag)
+        decision = default_config(source, plugin_names, _flag_value(argv, "--dataset_type") or "auto",
+                                  family="synthetic" if embedded else None)
+        log_decision(decision)
+        if decision.path is not None:
+            argv += ["--configs", str(decision.path)]
     extra_groups: dict[str, type] = {}
     for cls in plugin_classes:
         extra_groups.update(cls.param_groups)
@@ -90,7 +114,8 @@ def build_trainer(argv: list[str]) -> Trainer:
     args.model.model_path = str(model_path)
     model_path.mkdir(parents=True, exist_ok=True)
     write_cfg_args(model_path, args, {"_components": {name: sorted(active) for name, active in components.items()},
-                                       "_dataset_layout": scene.metadata.get("layout_detection")})
+                                       "_dataset_layout": scene.metadata.get("layout_detection"),
+                                       "_default_config": decision.as_dict() if decision else None})
 
     plugins: list[Plugin] = [
         cls({g: args.extra[g] for g in cls.param_groups}, components[cls.name]) for cls in plugin_classes

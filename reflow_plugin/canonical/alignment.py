@@ -30,6 +30,7 @@ reported in `unaligned`); with free poses a disconnected graph is a ValueError n
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from dataclasses import dataclass
 from typing import Mapping, Sequence
@@ -361,7 +362,9 @@ def _refine(data: dict[int, _Frame], pairs: dict[tuple[int, int], PairPrediction
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, max(iterations, 1), eta_min=lr * 0.01)
     with torch.no_grad():
         initial = float(loss_fn())
-    bar = tqdm(range(iterations), desc=desc, disable=not progress, leave=False)
+    # off a terminal (log files, CI) a redraw every 30 s instead of a carriage-return flood
+    bar = tqdm(range(iterations), desc=desc, disable=not progress, leave=False,
+               mininterval=0.1 if sys.stderr.isatty() else 30.0)
     for _ in bar:
         optimizer.zero_grad()
         loss = loss_fn()
