@@ -257,13 +257,24 @@ class ReFlowPlugin(Plugin):
             self._register_windows(model)
         if self.is_enabled("separation"):
             for group in ("deformation", "grid"):
-                model.scale_learning_rate(group, self.p.dynamic_lr_scale)
+                model.scale_learning_rate(group, self._dynamic_lr_multiplier(model))
             if dynamic:
                 model.deformation.fit_box(model.get_xyz.detach()[model.deformation_table], self.p.dynamic_aabb_margin)
             else:
                 log.warning("separation: no Gaussian is labelled dynamic, so the scene is modelled as static "
                             "(no motion masks: label_source=%s)", self.p.label_source)
         self._record(ctx)
+
+    def _dynamic_lr_multiplier(self, model: GaussianModel) -> float:
+        """`dynamic_lr_scale`, with 4DGS's scene-extent factor of these rates capped at `dynamic_lr_extent_cap`.
+
+        4DGS multiplies the deformation and grid rates by the scene extent; on top of our 10x that
+        diverges on large-scale scenes (COLMAP units), so above the cap the extent factor is undone.
+        """
+        extent, cap = float(model.spatial_lr_scale), self.p.dynamic_lr_extent_cap
+        multiplier = self.p.dynamic_lr_scale * (min(1.0, cap / extent) if cap > 0 and extent > 0 else 1.0)
+        self.info["dynamic_lr_multiplier"] = multiplier
+        return multiplier
 
     def _register_windows(self, model: GaussianModel) -> None:
         """Temporal opacity windows of keyframe seeds (none with a single reference frame)."""
@@ -293,7 +304,7 @@ class ReFlowPlugin(Plugin):
                      self.info["upgrade"]["threshold_world"])
         if self.is_enabled("separation"):
             for group in ("deformation", "grid"):
-                ctx.model.scale_learning_rate(group, self.p.dynamic_lr_scale)
+                ctx.model.scale_learning_rate(group, self._dynamic_lr_multiplier(ctx.model))
         table = ctx.model.deformation_table
         self.info["labels"] = {"dynamic": int(table.sum()), "static": int((~table).sum())}
 

@@ -240,3 +240,17 @@ def test_external_flow_loss_is_l1_on_confident_valid_pixels():
     assert flow.grad[1:].abs().sum() == 0 and flow.grad[0, :2].abs().sum() > 0
     empty = external_flow_loss(flow, valid, target, torch.zeros_like(confident))
     assert float(empty) == 0.0 and empty.requires_grad
+
+
+@pytest.mark.parametrize("extent, cap, expected", [
+    (0.57, 1.0, 10.0),          # the synthetic scenes (extent < 1): the plain 10x
+    (3.4, 1.0, 10.0 / 3.4),     # a large-scale scene: the extent factor undone above the cap
+    (3.4, 0.0, 10.0),           # cap 0: 4DGS's extent factor, uncapped
+])
+def test_dynamic_lr_multiplier_caps_the_extent_factor(extent, cap, expected):
+    plugin = ReFlowPlugin({"ReFlowParams": ReFlowParams(dynamic_lr_extent_cap=cap)})
+    model = types.SimpleNamespace(spatial_lr_scale=extent)
+    assert plugin._dynamic_lr_multiplier(model) == pytest.approx(expected)
+    # the effective rate factor of the dynamic branch (extent x multiplier) never exceeds 10 x cap
+    if cap:
+        assert extent * plugin._dynamic_lr_multiplier(model) <= 10.0 * cap + 1e-9

@@ -211,3 +211,23 @@ def test_render_command_writes_4dgs_layout_and_metrics(trained_run):
     assert set(per_view["PSNR"]) == {p.name for p in renders}
     with pytest.raises(FileNotFoundError, match="iteration_999"):
         render_from_argv(["-m", str(out), "--iteration", "999"])
+
+
+def test_non_finite_gradient_stops_the_run_naming_the_group(tiny_scene, tmp_path):
+    """One NaN gradient would make Adam write NaN into the parameters: stop before the step."""
+    trainer = build_trainer(base_argv(tiny_scene, tmp_path / "nan", 3, 1))
+    trainer.build()
+    model = trainer.ctx.model
+    original = trainer.hooks.call
+
+    def poison(name, ctx, *args):
+        original(name, ctx, *args)
+        if name == "post_backward" and ctx.iteration == 2:
+            model._opacity.grad[0] = float("nan")
+
+    trainer.hooks.call = poison
+    before = model._opacity.detach().clone()
+    with pytest.raises(FloatingPointError, match=r"iteration 2 in opacity \(lr"):
+        trainer.train()
+    assert torch.isfinite(model._opacity).all()  # the poisoned step never ran
+    assert not torch.equal(before, model._opacity)  # iteration 1 did

@@ -159,13 +159,14 @@ def train_from_argv(argv: list[str]) -> RunSummary:
 
 
 def run_cli(entry: Callable[[], int]) -> None:
-    """Run `entry`; input errors (bad flags, files, config keys, plugins) print one line, exit 2.
+    """Run `entry`; input errors (bad flags, files, config keys, plugins) and a diverged training
+    (non-finite loss or gradients, named) print one line, exit 2.
 
     Set FOURDGS_TRACEBACK=1 to see the full traceback instead.
     """
     try:
         sys.exit(entry())
-    except (ValueError, FileNotFoundError, NotADirectoryError) as exc:
+    except (ValueError, FileNotFoundError, NotADirectoryError, FloatingPointError) as exc:
         if os.environ.get("FOURDGS_TRACEBACK"):
             raise
         print(f"error: {exc}", file=sys.stderr)

@@ -220,6 +220,7 @@ class Trainer:
 
         with self.timer("densify_step"):
             with torch.no_grad():
+                self._check_finite_gradients()
                 self._densify()
                 model.optimizer.step()
                 model.optimizer.zero_grad(set_to_none=True)
@@ -229,6 +230,25 @@ class Trainer:
             psnr=float(torch.stack([psnr(v.image.detach(), v.camera.image) for v in ctx.views]).mean()),
         )
         self.run_log.iteration(ctx, every=self.run.log_every)
+
+    def _check_finite_gradients(self) -> None:
+        """Stop with the culprit named before a non-finite gradient poisons the parameters.
+
+        Adam turns one NaN gradient into NaN parameters for good, and the run then fails later,
+        far from the cause (the rasterizer's input check), or finishes with a broken model.
+        """
+        ctx, optimizer = self.ctx, self.ctx.model.optimizer
+        bad = [group for group in optimizer.param_groups
+               if any(p.grad is not None and not bool(torch.isfinite(p.grad).all()) for p in group["params"])]
+        if not bad:
+            return
+        rates = ", ".join(f"{g['name']} (lr {g['lr']:.3g})" for g in bad)
+        losses = ", ".join(f"{k} {float(v.detach()):.4g}" for k, v in ctx.losses.items())
+        raise FloatingPointError(
+            f"non-finite gradients at {ctx.stage} iteration {ctx.iteration} in {rates}; losses: {losses}. "
+            f"Learning rates of position, deformation and grid scale with the scene extent "
+            f"({ctx.model.spatial_lr_scale:.3g} here); on a large-scale scene lower them (e.g. "
+            f"--deformation_lr_init, --grid_lr_init) or rescale the scene")
 
     def baseline_losses(self) -> dict[str, Tensor]:
         """4DGS's loss: L1 over the batch, optional D-SSIM, HexPlane regularisers (fine stage).
