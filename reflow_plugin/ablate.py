@@ -149,6 +149,8 @@ def run_all(specs: list[RunSpec], executor, jobs: int, poll_seconds: float = 2.0
     while pending or in_flight:
         while pending and len(in_flight) < max(1, jobs):
             spec = pending.pop(0)
+            if is_done(spec):  # finished meanwhile by another runner on the same folder
+                continue
             print(f"[ablate] start {spec.scene}/{spec.row}", flush=True)
             in_flight.append((spec, executor.submit(execute, spec)))
         still = []

@@ -93,3 +93,21 @@ def test_train_records_the_family_config(tmp_path, tiny_scene):
     bare = build_trainer(["-s", str(scene), "-m", str(tmp_path / "bare"), "--configs", "none", "--quiet"])
     assert json.loads((tmp_path / "bare" / "config.json").read_text())["_default_config"] is None
     assert bare.args.hidden.kplanes_config["output_coordinate_dim"] == 32
+
+
+def test_background_follows_the_family_unless_set(tmp_path, tiny_scene):
+    """Real-capture families render on black, simulator scenes keep white; -w or a config wins."""
+    import shutil
+
+    from baselines.fourdgs.app import build_trainer
+
+    capture = tmp_path / "capture"  # the same files without the simulator's scene.json: an NVIDIA capture
+    shutil.copytree(tiny_scene, capture, ignore=shutil.ignore_patterns("scene.json"))
+    run = ["--quiet", "--iterations", "1", "--coarse_iterations", "1"]
+    assert build_trainer(["-s", str(tiny_scene), "-m", str(tmp_path / "a"), *run]).args.model.white_background
+    black = build_trainer(["-s", str(capture), "-m", str(tmp_path / "b"), *run])
+    assert not black.args.model.white_background
+    assert black.ctx.background.tolist() == [0.0, 0.0, 0.0]
+    saved = json.loads((tmp_path / "b" / "config.json").read_text())
+    assert saved["ModelParams"]["white_background"] is False  # render.py sees the same
+    assert build_trainer(["-s", str(capture), "-m", str(tmp_path / "c"), "-w", *run]).args.model.white_background

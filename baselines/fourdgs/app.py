@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from .family_config import default_config, log_decision, strip_bare_defaults
+from .family_config import dataset_family, default_config, family_background, log_decision, strip_bare_defaults
 from .evaluate import EvalResult, evaluate_cameras, render_video, write_metrics
 from .plugins import Plugin, load_plugin_class, resolve_components
 from .trainer import Trainer, TrainResult
@@ -104,6 +104,14 @@ def build_trainer(argv: list[str]) -> Trainer:
 
     source = embedded_scene_path() if embedded else Path(args.model.source_path)
     args.model.source_path = str(source)
+    if args.sources.get("ModelParams.white_background", "default") == "default":
+        family = "synthetic" if embedded else dataset_family(source, args.model.dataset_type)
+        white = family_background(family)
+        if white is not None:
+            args.model.white_background = white
+            args.sources["ModelParams.white_background"] = f"{family} family"
+            log.info("background: %s (%s family; -w / --no-white_background to choose)",
+                     "white" if white else "black", family)
     scene = load_scene(
         source, dataset_type=args.model.dataset_type, images=args.model.images,
         resolution=args.model.resolution, eval=args.model.eval,

@@ -19,6 +19,11 @@ when given): ``nvidia``, ``hypernerf``, ``dnerf``; ``colmap`` (e.g. ``baselines.
 of a hand-held video) -> ``hypernerf``'s file, 4DGS's config for monocular real captures with a
 moving camera. The choice is logged and recorded in the run's ``config.json``
 (``_default_config``).
+
+The background colour follows the family too when neither a flag (``-w`` /
+``--no-white_background``) nor a config file sets it: black for real captures (``nvidia``,
+``hypernerf``, ``colmap``: white would show where nothing is reconstructed), white for ``dnerf``
+(Blender renders on white) and for our ``synthetic`` scenes (the setting they were tuned with).
 """
 from __future__ import annotations
 
@@ -39,6 +44,14 @@ FAMILY_CONFIGS = {
     "dnerf": "dnerf/dnerf_default.py",
     "colmap": "hypernerf/default.py",
 }
+
+
+WHITE_BACKGROUND = {"synthetic": True, "dnerf": True, "nvidia": False, "hypernerf": False, "colmap": False}
+
+
+def family_background(family: str) -> bool | None:
+    """Whether the family's renders use a white background (None: unknown family, keep the default)."""
+    return WHITE_BACKGROUND.get(family)
 
 
 @dataclass
