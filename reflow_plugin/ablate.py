@@ -238,31 +238,50 @@ def write_outputs(table: dict[str, dict[str, dict]], rows: list[str], out: Path)
     return text
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_runner_args(argv: list[str] | None, prog: str, description: str, names_flag: str,
+                      table: dict[str, tuple[str, list[str]]]) -> tuple[argparse.Namespace, list[str], list[str]]:
+    """The command line shared by the ablation runner and the sweep: (args, chosen names, train.py extras).
+
+    Everything after ``--`` goes to every train.py run; ``--<names_flag>`` picks entries of ``table``.
+    """
     argv = list(sys.argv[1:] if argv is None else argv)
     extra: list[str] = []
     if "--" in argv:
         extra, argv = argv[argv.index("--") + 1:], argv[:argv.index("--")]
-    parser = argparse.ArgumentParser(prog="python -m reflow_plugin.ablate", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog=prog, description=description)
     parser.add_argument("-s", "--source", required=True, help="a scene folder or suite:synthetic")
     parser.add_argument("-o", "--out", type=Path, required=True)
-    parser.add_argument("--rows", default=",".join(ROWS), help=f"comma-separated, of {list(ROWS)}")
+    parser.add_argument(f"--{names_flag}", default=",".join(table), help=f"comma-separated, of {list(table)}")
     parser.add_argument("--jobs", type=int, default=1)
     parser.add_argument("--executor", default="local", choices=("local", "slurm"))
     parser.add_argument("--timeout_min", type=int, default=240)
     parser.add_argument("--slurm_partition")
     args = parser.parse_args(argv)
+    names = [n for n in getattr(args, names_flag).split(",") if n]
+    return args, names, extra
+
+
+def start_runs(args: argparse.Namespace, names: list[str], extra: list[str], label: str,
+               table: dict[str, tuple[str, list[str]]] | None = None) -> tuple[list[RunSpec], list[str]] | None:
+    """Plan and run what is not done yet; (specs, failures), or None after printing a bad-input error."""
     try:
-        rows = [r for r in args.rows.split(",") if r]
-        specs = plan(resolve_scenes(args.source), rows, args.out, extra)
+        specs = plan(resolve_scenes(args.source), names, args.out, extra, table=table)
         executor = make_executor(args.executor, args.out / "_submitit", args.timeout_min, args.slurm_partition)
     except AblationError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return None
+    done = sum(is_done(s) for s in specs)
+    if done:
+        print(f"[{label}] {done} of {len(specs)} runs already done (kept)")
+    return specs, run_all(specs, executor, args.jobs)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args, rows, extra = parse_runner_args(argv, "python -m reflow_plugin.ablate", __doc__.splitlines()[0], "rows", ROWS)
+    started = start_runs(args, rows, extra, "ablate")
+    if started is None:
         return 2
-    skipped = sum(is_done(s) for s in specs)
-    if skipped:
-        print(f"[ablate] {skipped} of {len(specs)} runs already done (kept)")
-    failures = run_all(specs, executor, args.jobs)
+    specs, failures = started
     print(write_outputs(collect(specs), rows, args.out))
     for failure in failures:
         print(f"error: {failure}", file=sys.stderr)

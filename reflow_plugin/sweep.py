@@ -20,11 +20,9 @@ curves and the front of final (time, PSNR) points.
 """
 from __future__ import annotations
 
-import argparse
 import sys
-from pathlib import Path
 
-from .ablate import AblationError, is_done, make_executor, plan, resolve_scenes, run_all
+from .ablate import parse_runner_args, start_runs
 
 _HALF_SCHEDULE = ["--iterations", "1000", "--position_lr_max_steps", "1000", "--densify_until_iter", "750"]
 _REFLOW = ["--plugin", "reflow"]
@@ -44,30 +42,12 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    extra: list[str] = []
-    if "--" in argv:
-        extra, argv = argv[argv.index("--") + 1:], argv[:argv.index("--")]
-    parser = argparse.ArgumentParser(prog="python -m reflow_plugin.sweep", description=__doc__.splitlines()[0])
-    parser.add_argument("-s", "--source", required=True, help="a scene folder or suite:synthetic")
-    parser.add_argument("-o", "--out", type=Path, required=True)
-    parser.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {list(VARIANTS)}")
-    parser.add_argument("--jobs", type=int, default=1)
-    parser.add_argument("--executor", default="local", choices=("local", "slurm"))
-    parser.add_argument("--timeout_min", type=int, default=240)
-    parser.add_argument("--slurm_partition")
-    args = parser.parse_args(argv)
-    try:
-        variants = [v for v in args.variants.split(",") if v]
-        specs = plan(resolve_scenes(args.source), variants, args.out, extra, table=VARIANTS)
-        executor = make_executor(args.executor, args.out / "_submitit", args.timeout_min, args.slurm_partition)
-    except AblationError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    args, variants, extra = parse_runner_args(argv, "python -m reflow_plugin.sweep", __doc__.splitlines()[0],
+                                              "variants", VARIANTS)
+    started = start_runs(args, variants, extra, "sweep", table=VARIANTS)
+    if started is None:
         return 2
-    done = sum(is_done(s) for s in specs)
-    if done:
-        print(f"[sweep] {done} of {len(specs)} runs already done (kept)")
-    failures = run_all(specs, executor, args.jobs)
+    specs, failures = started
     for failure in failures:
         print(f"error: {failure}", file=sys.stderr)
     print(f"[sweep] {len(specs) - len(failures)} runs in {args.out}; next: python -m reflow_plugin.report {args.out} "
