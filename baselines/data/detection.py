@@ -69,8 +69,11 @@ class Detection:
                 "also_matched": [{"type": k, "files": w} for k, w in self.also_matched]}
 
 
-def detect_layout(source_path: Path | str) -> Detection:
-    """The layout of ``source_path`` by the preference rule; ``DatasetError`` when none matches."""
+def detect_layout(source_path: Path | str, warn: bool = True) -> Detection:
+    """The layout of ``source_path`` by the preference rule; ``DatasetError`` when none matches.
+
+    ``warn=False`` for callers that only need the kind (the reader warns about ambiguity once).
+    """
     source = Path(source_path)
     if not source.is_dir():
         raise DatasetError(f"dataset folder not found: {source}")
@@ -82,6 +85,6 @@ def detect_layout(source_path: Path | str) -> Detection:
     # nvidia's weaker signature is no other layout, nor a companion's files
     others = [(k, w) for k, w in matched[1:] if k != kind and (kind, k) not in COMPANIONS]
     detection = Detection(kind, what, others)
-    if detection.ambiguous:
+    if warn and detection.ambiguous:
         log.warning("%s: several dataset layouts match: %s", source, detection.describe())
     return detection

@@ -83,7 +83,7 @@ def dataset_family(source: Path, dataset_type: str = "auto") -> str:
 
     if is_simulator_scene(source):
         return "synthetic"
-    return dataset_type if dataset_type != "auto" else detect_layout(source).kind
+    return dataset_type if dataset_type != "auto" else detect_layout(source, warn=False).kind
 
 
 def default_config(source: Path, plugins: list[str], dataset_type: str = "auto",
