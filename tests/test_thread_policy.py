@@ -15,9 +15,9 @@ def test_policy_fills_only_what_the_user_left_unset(monkeypatch):
     monkeypatch.setattr(thread_policy, "available_cpus", lambda: 2)
     monkeypatch.setattr(thread_policy.os, "cpu_count", lambda: 8)  # a CPU set of 2 on an 8-CPU machine
     env: dict[str, str] = {}
-    assert thread_policy.apply_thread_policy(env, torch_loaded=False) == {"OMP_WAIT_POLICY": "PASSIVE",
-                                                                          "OMP_NUM_THREADS": "2"}
-    assert env == {"OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "2"}
+    expected = {"OMP_WAIT_POLICY": "PASSIVE", "GOMP_SPINCOUNT": thread_policy.SPIN_COUNT, "OMP_NUM_THREADS": "2"}
+    assert thread_policy.apply_thread_policy(env, torch_loaded=False) == expected
+    assert env == expected
     user = {"OMP_WAIT_POLICY": "ACTIVE", "OMP_NUM_THREADS": "6"}
     assert thread_policy.apply_thread_policy(user, torch_loaded=False) == {}
     assert user == {"OMP_WAIT_POLICY": "ACTIVE", "OMP_NUM_THREADS": "6"}
@@ -27,7 +27,47 @@ def test_policy_fills_only_what_the_user_left_unset(monkeypatch):
 def test_thread_count_untouched_when_every_cpu_is_available(monkeypatch):
     monkeypatch.setattr(thread_policy, "available_cpus", lambda: 8)
     monkeypatch.setattr(thread_policy.os, "cpu_count", lambda: 8)
-    assert thread_policy.apply_thread_policy({}, torch_loaded=False) == {"OMP_WAIT_POLICY": "PASSIVE"}
+    assert thread_policy.apply_thread_policy({}, torch_loaded=False) == {"OMP_WAIT_POLICY": "PASSIVE",
+                                                                         "GOMP_SPINCOUNT": thread_policy.SPIN_COUNT}
+
+
+def test_a_user_spin_count_is_kept():
+    env = {"GOMP_SPINCOUNT": "0"}
+    assert thread_policy.apply_thread_policy(env, torch_loaded=False) == {"OMP_WAIT_POLICY": "PASSIVE"}
+    assert env["GOMP_SPINCOUNT"] == "0"
+
+
+class _FakeLibc:
+    def __init__(self, result: int = 1) -> None:
+        self.calls: list[tuple[int, int]] = []
+        self.result = result
+
+    def mallopt(self, param: int, value: int) -> int:
+        self.calls.append((param, value))
+        return self.result
+
+
+def test_allocator_policy_raises_glibc_thresholds():
+    libc = _FakeLibc()
+    assert thread_policy.apply_allocator_policy({}, libc=libc)
+    assert libc.calls == [(thread_policy.M_MMAP_THRESHOLD, 32 * 1024 * 1024),
+                          (thread_policy.M_TRIM_THRESHOLD, thread_policy.TRIM_THRESHOLD_BYTES)]
+    assert not thread_policy.apply_allocator_policy({}, libc=_FakeLibc(result=0))  # glibc refused
+
+
+@pytest.mark.parametrize("variable", ["MALLOC_MMAP_THRESHOLD_", "GLIBC_TUNABLES"])
+def test_allocator_policy_leaves_a_tuned_malloc_alone(variable):
+    libc = _FakeLibc()
+    assert not thread_policy.apply_allocator_policy({variable: "1"}, libc=libc)
+    assert libc.calls == []
+
+
+@pytest.mark.skipif(__import__("platform").libc_ver()[0] != "glibc", reason="glibc only")
+def test_allocator_policy_is_accepted_by_the_real_glibc():
+    """glibc rejects an mmap threshold above its maximum; ours must be within it."""
+    code = "from baselines import thread_policy as t; print(t.apply_allocator_policy({}))"
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO_ROOT, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["True"]
 
 
 @pytest.mark.parametrize("user_policy", [None, "ACTIVE"])

@@ -22,6 +22,7 @@ from typing import Any
 
 import torch
 from torch import Tensor
+from torch.nn.utils import get_total_norm
 
 from baselines.data import SceneInfo, initial_point_cloud
 from baselines.metrics import psnr, ssim, ssim_map
@@ -238,10 +239,12 @@ class Trainer:
         far from the cause (the rasterizer's input check), or finishes with a broken model.
         """
         ctx, optimizer = self.ctx, self.ctx.model.optimizer
+        grads = [p.grad for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
+        # one fused pass (max |g| is NaN/inf iff some entry is) instead of a check and sync per tensor
+        if not grads or bool(torch.isfinite(get_total_norm(grads, norm_type=float("inf")))):
+            return
         bad = [group for group in optimizer.param_groups
                if any(p.grad is not None and not bool(torch.isfinite(p.grad).all()) for p in group["params"])]
-        if not bad:
-            return
         rates = ", ".join(f"{g['name']} (lr {g['lr']:.3g})" for g in bad)
         losses = ", ".join(f"{k} {float(v.detach()):.4g}" for k, v in ctx.losses.items())
         raise FloatingPointError(

@@ -1,0 +1,133 @@
+"""Profile fine-stage training iterations: per-phase medians and the top ops by self CPU time.
+
+    python benchmarks/profile_step.py --model_from output/skating/point_cloud/iteration_2000
+    python benchmarks/profile_step.py                       # trains coarse + 500 fine iterations first
+    python benchmarks/profile_step.py -- --configs none -s data/synthetic/skating_64x48   # 4DGS's bare model
+
+Everything after ``--`` goes to train.py's parser (default: the embedded scene with its config).
+The model is a trained one (``--model_from``, a point_cloud/iteration_N folder written with the
+same config) or the result of a short warm-up (full coarse stage, ``--warmup`` fine iterations),
+so the Gaussian count is the one training spends its time at. Then ``--iters`` fine iterations
+run twice: once timed by the trainer's StageTimer (medians per phase, the profiler's overhead
+excluded), once under ``torch.profiler`` (ops by self CPU time, summed over the iterations and
+divided by their number). Densification and the opacity reset are switched off for the measured
+iterations (their cost, amortised over their interval, is reported by benchmarks/train_baseline.py),
+so every measured iteration does the same work. Prints Markdown tables (docs/PROFILE.md holds the
+latest ones).
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+if __package__ in (None, ""):
+    sys.path.insert(0, str(REPO_ROOT))
+
+from machine import cpu_model, load_average  # noqa: E402  (benchmarks/machine.py, beside this script)
+
+from baselines.thread_policy import apply_thread_policy  # noqa: E402
+
+PHASES = ("deform_project", "rasterize", "loss_backward", "densify_step")
+
+
+def _prepare(train_argv: list[str], model_from: Path | None, warmup: int):
+    """A trainer in its fine stage with a trained model and densification off."""
+    from baselines.fourdgs.app import build_trainer
+
+    trainer = build_trainer(["--quiet", "--test_iterations", "-1", "--save_iterations", "-1", *train_argv])
+    if model_from is not None:
+        trainer.load_model_from(model_from)
+    else:
+        trainer.build()
+        for stage, total in (("coarse", trainer.opt.coarse_iterations), ("fine", warmup)):
+            trainer._begin_stage(stage, total)
+            for iteration in range(1, total + 1):
+                trainer.ctx.iteration = iteration
+                trainer.train_step()
+    trainer._begin_stage("fine", trainer.opt.iterations)
+    # the measured iterations: no densification or opacity reset, but the same losses and step
+    trainer.opt.densify_until_iter = 0
+    trainer.opt.opacity_reset_interval = 10**9
+    trainer.ctx.iteration = max(trainer.opt.pruning_from_iter, trainer.opt.densify_until_iter) + 1
+    return trainer
+
+
+def _step(trainer, count: int) -> None:
+    for _ in range(count):
+        trainer.ctx.iteration += 1
+        trainer.train_step()
+
+
+def phase_medians(trainer, iters: int) -> tuple[dict[str, float], float]:
+    """Median ms per phase and median ms per whole iteration over ``iters`` timed iterations."""
+    per_phase: dict[str, list[float]] = {p: [] for p in PHASES}
+    totals = []
+    for _ in range(iters):
+        before = {p: trainer.timer.total[p] for p in PHASES}
+        start = time.perf_counter()
+        _step(trainer, 1)
+        totals.append((time.perf_counter() - start) * 1e3)
+        for p in PHASES:
+            per_phase[p].append((trainer.timer.total[p] - before[p]) * 1e3)
+    return {p: statistics.median(v) for p, v in per_phase.items()}, statistics.median(totals)
+
+
+def op_table(trainer, iters: int, top: int) -> list[tuple[str, float, float, int]]:
+    """[(op, self CPU ms per iteration, share of the total self CPU, calls per iteration)]."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        _step(trainer, iters)
+    events = [e for e in prof.key_averages() if e.self_cpu_time_total > 0]
+    total = sum(e.self_cpu_time_total for e in events)
+    events.sort(key=lambda e: e.self_cpu_time_total, reverse=True)
+    return [(e.key, e.self_cpu_time_total / 1e3 / iters, e.self_cpu_time_total / total, round(e.count / iters))
+            for e in events[:top]]
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    train_argv: list[str] = []
+    if "--" in argv:
+        train_argv, argv = argv[argv.index("--") + 1:], argv[:argv.index("--")]
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model_from", type=Path, help="a point_cloud/iteration_N folder trained with the same config")
+    parser.add_argument("--warmup", type=int, default=500, help="fine iterations before measuring (no --model_from)")
+    parser.add_argument("--iters", type=int, default=30)
+    parser.add_argument("--top", type=int, default=20)
+    args = parser.parse_args(argv)
+    policy = apply_thread_policy() or "thread policy: user's"
+
+    import torch
+
+    import os
+    if os.environ.get("FTZ"): torch.set_flush_denormal(True)
+    trainer = _prepare(train_argv, args.model_from, args.warmup)
+    _step(trainer, 3)  # allocator and caches warm
+    phases, total = phase_medians(trainer, args.iters)
+    ops = op_table(trainer, args.iters, args.top)
+    model = trainer.ctx.model
+    params = sum(p.numel() for g in model.optimizer.param_groups for p in g["params"])
+    cam = trainer.train_cameras[0]
+    print(f"# profile: {model.num_gaussians} Gaussians, {params / 1e6:.2f}M parameters, {cam.width}x{cam.height}, "
+          f"batch {trainer.opt.batch_size}, torch {torch.__version__}, {policy}, {cpu_model()}, "
+          f"load {load_average()}")
+    print(f"# command: python benchmarks/profile_step.py {' '.join(sys.argv[1:])}\n")
+    print("| phase | median ms / iteration | share |\n|---|---:|---:|")
+    for p in PHASES:
+        print(f"| {p} | {phases[p]:.1f} | {phases[p] / total:.0%} |")
+    other = total - sum(phases.values())
+    print(f"| other (lr, sampler, metrics, log) | {other:.1f} | {other / total:.0%} |")
+    print(f"| **iteration** | **{total:.1f}** | |\n")
+    print("| op (self CPU) | ms / iteration | share | calls / iteration |\n|---|---:|---:|---:|")
+    for name, ms, share, calls in ops:
+        print(f"| `{name}` | {ms:.2f} | {share:.1%} | {calls} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
