@@ -1,15 +1,25 @@
-"""Forward+backward time of the 4DGS deformation module: ours vs 4DGS's layer-by-layer recipe.
+"""The 4DGS deformation module and the non-raster part of a step: ours vs 4DGS's recipe, by size.
 
-    python benchmarks/deformation.py                      # 20k and 100k Gaussians, lego config
-    python benchmarks/deformation.py --sizes 20000 --repeats 15 --threads 2
+    python benchmarks/deformation.py                               # 3 configs x 2k..100k Gaussians
+    python benchmarks/deformation.py --configs lego --sizes 2000 20000 --repeats 9
 
-Config (4DGS arguments/dnerf/lego.py over dnerf_default.py): kplanes resolution [64, 64, 64, 25],
-32 channels, multires [1, 2], net_width 64, defor_depth 0; ModelHiddenParams defaults otherwise
-(no_do and no_dshs True, so the position, scale and rotation heads run). Both modules share one
-state dict and the same inputs; each timed call is deformation forward + backward of a scalar
-loss over all outputs (gradients flow to the means, as in training, and to every weight).
-Calls alternate between the two modules so machine load affects both alike; medians are
-printed with the ratio plain / ours. ``PlainDeformNetwork`` is also the test oracle.
+Configs (read with train.py's parser): ``lego`` = arguments/dnerf/lego.py (2 levels, 32 channels,
+width 64), ``nvidia`` = arguments/nvidia/default.py (3 levels, 16 channels, width 128), ``bare`` =
+4DGS's ModelHiddenParams defaults (4 levels up to 8x, 32 channels: what 4DGS runs without a
+config). ``PlainDeformNetwork`` below is 4DGS's module recipe (grid_sample per plane, same
+state-dict keys); both modules share one state dict and the same inputs. Two measures per size:
+
+- deformation: forward + backward of a scalar loss over every output the config's heads change
+  (gradients reach the means, as in training, and every weight);
+- step: the non-raster part of a fine-stage step: the deformation's forward + backward, the
+  HexPlane regularisers (the config's weights) forward + backward, and the Adam step over every
+  parameter (the deformation's and the Gaussians' means/scales/rotations/opacities/SH) -- ours
+  with our regularisers and optimizer (fused gradient, fused Adam), the recipe with 4DGS's
+  formulas through autograd and torch's default Adam.
+
+Calls alternate between the two sides so machine load affects both alike; medians are printed
+with the ratio recipe / ours (above 1: ours is faster). ``PlainDeformNetwork`` is also the test
+oracle of the deformation.
 """
 
 from __future__ import annotations
@@ -22,17 +32,23 @@ import time
 import types
 from pathlib import Path
 
+REPO_ROOT = Path(__file__).resolve().parents[1]
 if __package__ in (None, ""):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    sys.path.insert(0, str(REPO_ROOT))
 from baselines.thread_policy import apply_thread_policy  # noqa: E402
 
-apply_thread_policy()  # before torch: passive OpenMP waits unless OMP_WAIT_POLICY is set
+apply_thread_policy()  # before torch: OpenMP waits and the allocator (baselines/thread_policy.py)
 
 import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
 from torch import nn  # noqa: E402
 
 from baselines.fourdgs.deformation import DeformNetwork  # noqa: E402
+from baselines.fourdgs.regularization import (  # noqa: E402
+    hexplane_regularization,
+    hexplane_regularization_reference,
+)
+from benchmarks.machine import cpu_model, load_average  # noqa: E402
 from baselines.fourdgs.state import GaussianState  # noqa: E402
 
 LEGO_HIDDEN = dict(
@@ -160,6 +176,19 @@ def hidden_args(**overrides) -> types.SimpleNamespace:
 
 
 # --------------------------------------------------------------------------------------------
+CONFIGS = {"lego": "arguments/dnerf/lego.py", "nvidia": "arguments/nvidia/default.py", "bare": None}
+DEFAULT_SIZES = [2_000, 5_000, 10_000, 20_000, 100_000]
+
+
+def config_hidden(name: str) -> types.SimpleNamespace:
+    """ModelHiddenParams of a named config, as train.py would parse them."""
+    from arguments import parse_train_args
+
+    path = CONFIGS[name]
+    args = parse_train_args(["-s", "unused"] + (["--configs", str(REPO_ROOT / path)] if path else []))
+    return types.SimpleNamespace(**vars(args.hidden))
+
+
 def _inputs(count: int, generator: torch.Generator) -> tuple[torch.Tensor, ...]:
     means = (torch.rand(count, 3, generator=generator) * 2 - 1) * 1.5
     log_scales = torch.randn(count, 3, generator=generator) * 0.3 - 4
@@ -170,58 +199,92 @@ def _inputs(count: int, generator: torch.Generator) -> tuple[torch.Tensor, ...]:
     return means, log_scales, rotations, opacity, shs, times
 
 
-def _time_call(fn) -> tuple[float, float]:
-    """(wall seconds, process CPU seconds) of one call."""
-    wall, cpu = time.perf_counter(), time.process_time()
+def _time_call(fn) -> float:
+    start = time.perf_counter()
     fn()
-    return time.perf_counter() - wall, time.process_time() - cpu
+    return time.perf_counter() - start
 
 
-def run(sizes: list[int], repeats: int, warmup: int) -> None:
-    torch.manual_seed(0)
-    args = hidden_args(**LEGO_HIDDEN)
-    ours = DeformNetwork(args)
-    plain = PlainDeformNetwork(args)
-    plain.load_state_dict(ours.state_dict(), strict=True)
-    generator = torch.Generator().manual_seed(0)
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; config: lego (multires [1, 2], "
-          f"resolution [64, 64, 64, 25], 32 channels, net_width 64, defor_depth 0)")
-    for count in sizes:
-        means, log_scales, rotations, opacity, shs, times = _inputs(count, generator)
-        means.requires_grad_(True)
+class _Side:
+    """One side of the comparison: a module, its Gaussians and optimizer, and the two timed calls."""
 
-        def step_ours():
-            out = ours(GaussianState(means, log_scales, rotations, opacity, shs), times)
-            (out.means.sum() + out.log_scales.sum() + out.rotations.sum()).backward()
+    def __init__(self, module: nn.Module, ours: bool, gaussians: list[torch.Tensor], times: torch.Tensor,
+                 hidden: types.SimpleNamespace) -> None:
+        self.module, self.ours, self.times, self.hidden = module, ours, times, hidden
+        self.gaussians = [nn.Parameter(g.clone()) for g in gaussians]
+        params = [p for p in module.parameters() if p.requires_grad] + self.gaussians
+        # ours: what GaussianModel.training_setup builds; the recipe: 4DGS's torch.optim.Adam
+        self.optimizer = torch.optim.Adam(params, lr=1e-6, eps=1e-15, fused=True if ours else None)
 
-        def step_plain():
-            pts, scales, rots, _, _ = plain(means, log_scales, rotations, opacity, shs, times)
-            (pts.sum() + scales.sum() + rots.sum()).backward()
+    def _loss(self) -> torch.Tensor:
+        means, log_scales, rotations, opacity, shs = self.gaussians
+        if self.ours:
+            out = self.module(GaussianState(means, log_scales, rotations, opacity, shs), self.times)
+            outputs = (out.means, out.log_scales, out.rotations, out.opacity_logits, out.shs)
+        else:
+            outputs = self.module(means, log_scales, rotations, opacity, shs, self.times)
+        return sum(o.sum() for o in outputs)
 
-        for _ in range(warmup):
-            step_ours()
-            step_plain()
-        timings: dict[str, list[tuple[float, float]]] = {"ours": [], "plain": []}
-        for _ in range(repeats):
-            timings["ours"].append(_time_call(step_ours))
-            timings["plain"].append(_time_call(step_plain))
-        ours_ms, ours_cpu = (statistics.median(t[i] for t in timings["ours"]) * 1e3 for i in (0, 1))
-        plain_ms, plain_cpu = (statistics.median(t[i] for t in timings["plain"]) * 1e3 for i in (0, 1))
-        print(f"N={count:>7}: ours {ours_ms:8.1f} ms   plain 4DGS recipe {plain_ms:8.1f} ms   "
-              f"plain/ours {plain_ms / ours_ms:5.2f}x   (median of {repeats}, fwd+bwd; process CPU time "
-              f"ours {ours_cpu:.0f} ms, plain {plain_cpu:.0f} ms)")
+    def _regularisation(self) -> torch.Tensor:
+        h = self.hidden
+        grids = self.module.deformation_net.grid.grids
+        regularization = hexplane_regularization if self.ours else hexplane_regularization_reference
+        return regularization(grids, h.time_smoothness_weight, h.l1_time_planes, h.plane_tv_weight)
+
+    def deformation(self) -> None:
+        self.optimizer.zero_grad(set_to_none=True)
+        self._loss().backward()
+
+    def step(self) -> None:
+        self.optimizer.zero_grad(set_to_none=True)
+        (self._loss() + self._regularisation()).backward()
+        self.optimizer.step()
+
+
+def run(configs: list[str], sizes: list[int], repeats: int, warmup: int) -> None:
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {cpu_model()}, load {load_average()}")
+    print("| config | Gaussians | deformation: recipe ms | ours ms | recipe / ours | step: recipe ms | ours ms "
+          "| recipe / ours |\n|---|---:|---:|---:|---:|---:|---:|---:|")
+    for name in configs:
+        hidden = config_hidden(name)
+        torch.manual_seed(0)
+        ours_module = DeformNetwork(hidden)
+        plain_module = PlainDeformNetwork(hidden)
+        plain_module.load_state_dict({k: v.contiguous() for k, v in ours_module.state_dict().items()}, strict=True)
+        generator = torch.Generator().manual_seed(0)
+        for count in sizes:
+            *gaussians, times = _inputs(count, generator)
+            sides = {"plain": _Side(plain_module, False, gaussians, times, hidden),
+                     "ours": _Side(ours_module, True, gaussians, times, hidden)}
+            medians = {}
+            for measure in ("deformation", "step"):
+                samples: dict[str, list[float]] = {"plain": [], "ours": []}
+                for index in range(warmup + repeats):
+                    for side_name, side in sides.items():
+                        elapsed = _time_call(getattr(side, measure))
+                        if index >= warmup:
+                            samples[side_name].append(elapsed)
+                for side_name in sides:
+                    medians[measure, side_name] = statistics.median(samples[side_name]) * 1e3
+            cells = []
+            for measure in ("deformation", "step"):
+                plain_ms, ours_ms = medians[measure, "plain"], medians[measure, "ours"]
+                cells += [f"{plain_ms:.1f}", f"{ours_ms:.1f}", f"{plain_ms / ours_ms:.2f}x"]
+            print(f"| {name} | {count} | " + " | ".join(cells) + " |", flush=True)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--sizes", type=int, nargs="+", default=[20_000, 100_000])
-    parser.add_argument("--repeats", type=int, default=9)
-    parser.add_argument("--warmup", type=int, default=2)
+    parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
+    parser.add_argument("--sizes", type=int, nargs="+", default=DEFAULT_SIZES)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--warmup", type=int, default=1)
     parser.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
-    run(args.sizes, args.repeats, args.warmup)
+    print(f"# command: python benchmarks/deformation.py {' '.join(sys.argv[1:])}")
+    run(args.configs, args.sizes, args.repeats, args.warmup)
 
 
 if __name__ == "__main__":

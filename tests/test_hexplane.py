@@ -5,7 +5,11 @@ import torch
 import torch.nn.functional as F
 
 from baselines.fourdgs.hexplane import HexPlaneField, sample_plane
-from baselines.fourdgs.regularization import hexplane_regularization, plane_smoothness
+from baselines.fourdgs.regularization import (
+    hexplane_regularization,
+    hexplane_regularization_reference,
+    plane_smoothness,
+)
 from benchmarks.deformation import PlainHexPlane
 
 CONFIG = {"grid_dimensions": 2, "input_coordinate_dim": 4, "output_coordinate_dim": 3, "resolution": [4, 5, 6, 3]}
@@ -69,7 +73,8 @@ def test_field_feature_is_product_of_plane_samples():
 
 def test_lookup_matches_grid_sample_values_and_gradients():
     torch.manual_seed(0)
-    for height, width in [(5, 7), (1, 6), (6, 1), (25, 16)]:
+    # the last two have more than 4 cells per point: the index_add_ branch of the table gradient
+    for height, width in [(5, 7), (1, 6), (6, 1), (25, 16), (40, 50), (1, 1300)]:
         plane = torch.rand(1, 3, height, width, dtype=torch.float64, requires_grad=True)
         edges = torch.tensor([-1.0, 1.0, 0.0, -1.0, 1.0], dtype=torch.float64)
         u = torch.cat([torch.rand(300, dtype=torch.float64) * 2.4 - 1.2, edges]).requires_grad_()
@@ -161,3 +166,110 @@ def test_regularization_weights_apply_to_4dgs_plane_groups():
     assert l1_time.item() == pytest.approx((1 - rows**2).abs().mean().item())
     total = hexplane_regularization(field.grids, 0.01, 0.001, 0.1)
     assert total.item() == pytest.approx(0.01 * 4.0 + 0.001 * l1_time.item() + 0.1 * 1.0)
+
+
+@pytest.mark.parametrize("weights", [(0.01, 0.001, 0.1), (0.0, 0.3, 0.0), (0.2, 0.0, 0.0)])
+def test_fused_regularization_equals_the_4dgs_formulas_with_gradients(weights):
+    torch.manual_seed(3)
+    # time resolution 2: the time planes are too short for a second difference (contribute 0)
+    for resolution in ([4, 5, 6, 5], [4, 5, 6, 2]):
+        field = HexPlaneField(1.0, {**CONFIG, "resolution": resolution}, [1, 2])
+        with torch.no_grad():
+            for level in field.grids:
+                for plane in level:
+                    plane.add_(torch.randn_like(plane))
+                    plane.masked_fill_(torch.rand_like(plane) < 0.1, 1.0)  # |1 - p| at its kink
+        planes = [p for level in field.grids for p in level]
+        fused = hexplane_regularization(field.grids, *weights)
+        fused_grads = torch.autograd.grad(fused, planes, allow_unused=True)
+        reference = hexplane_regularization_reference(field.grids, *weights)
+        reference_grads = torch.autograd.grad(reference, planes, allow_unused=True)
+        torch.testing.assert_close(fused, reference, atol=1e-6, rtol=1e-6)
+        for a, b, plane in zip(fused_grads, reference_grads, planes):
+            a = torch.zeros_like(plane) if a is None else a
+            b = torch.zeros_like(plane) if b is None else b
+            torch.testing.assert_close(a, b, atol=1e-7, rtol=1e-5)
+
+
+# ------------------------------------------------------------------ planes as views of one table
+def _copy_path(field: HexPlaneField, pts: torch.Tensor, times: torch.Tensor) -> torch.Tensor:
+    """The lookup through a freshly built table (plane_product_lookup), the shared path's oracle."""
+    from baselines.fourdgs.plane_lookup import plane_product_lookup, planes_to_table
+
+    planes = [p for level in field.grids for p in level]
+    return plane_product_lookup(planes_to_table(planes), field.layout, field.normalize(pts), times)
+
+
+def _values_and_grads(field: HexPlaneField, pts, times, weights, lookup) -> tuple[torch.Tensor, list, torch.Tensor]:
+    for p in field.parameters():
+        p.grad = None
+    pts = pts.clone().requires_grad_(True)
+    out = lookup(pts, times)
+    (out * weights).sum().backward()
+    return out.detach(), [p.grad.clone() for level in field.grids for p in level], pts.grad
+
+
+def _assert_shared_equals_copy_path(field, pts, times, weights) -> None:
+    shared = _values_and_grads(field, pts, times, weights, field)
+    copied = _values_and_grads(field, pts, times, weights, lambda x, t: _copy_path(field, x, t))
+    torch.testing.assert_close(shared[0], copied[0], atol=1e-6, rtol=1e-6)
+    for a, b in zip(shared[1], copied[1]):
+        torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-6)
+    torch.testing.assert_close(shared[2], copied[2], atol=1e-6, rtol=1e-6)
+
+
+def test_planes_are_views_of_one_table_and_their_gradients_too():
+    from baselines.fourdgs.plane_lookup import shared_table
+
+    torch.manual_seed(0)
+    field = HexPlaneField(1.0, CONFIG, [1, 2])
+    planes = [p for level in field.grids for p in level]
+    table = shared_table(planes, field.layout)
+    assert table is not None and table.shape == (field.layout.num_cells, 3)
+    assert all(p.untyped_storage().data_ptr() == table.untyped_storage().data_ptr() for p in planes)
+    out = field(torch.rand(40, 3) * 2 - 1, torch.rand(40, 1))
+    out.square().sum().backward()
+    # every plane's gradient is a view of one gradient table (handed to .grad without a copy)
+    assert len({p.grad.untyped_storage().data_ptr() for p in planes}) == 1
+    assert all(p.grad.stride() == p.stride() for p in planes)
+
+
+def test_shared_table_lookup_equals_the_copy_path_after_updates_and_repacking():
+    torch.manual_seed(1)
+    field = HexPlaneField(1.0, CONFIG, [1, 2])
+    with torch.no_grad():  # non-trivial time planes
+        for level in field.grids:
+            for p in level:
+                p.add_(0.3 * torch.randn_like(p))
+    pts, times, weights = torch.rand(300, 3) * 2.4 - 1.2, torch.rand(300, 1), torch.randn(300, field.feat_dim)
+    _assert_shared_equals_copy_path(field, pts, times, weights)
+    # an optimizer step updates the table in place: the next lookup must see the new values
+    optimizer = torch.optim.Adam(field.parameters(), lr=0.05)
+    field(pts, times).mul(weights).sum().backward()
+    before = field(pts, times).detach()
+    optimizer.step()
+    after = field(pts, times).detach()
+    assert (after - before).abs().max() > 1e-3
+    _assert_shared_equals_copy_path(field, pts, times, weights)
+    # a plane given its own storage (what module.to(device) does) is packed again, values kept
+    plane = field.grids[1][3]
+    plane.data = plane.data.clone()
+    _assert_shared_equals_copy_path(field, pts, times, weights)
+    from baselines.fourdgs.plane_lookup import shared_table
+
+    assert shared_table([p for level in field.grids for p in level], field.layout) is not None
+
+
+def test_shared_planes_keep_the_4dgs_state_dict():
+    torch.manual_seed(2)
+    field = HexPlaneField(1.0, CONFIG, [1, 2])
+    state = field.state_dict()
+    assert [tuple(v.shape) for k, v in state.items() if k.startswith("grids.1.")] == [
+        (1, 3, 10, 8), (1, 3, 12, 8), (1, 3, 3, 8), (1, 3, 12, 10), (1, 3, 3, 10), (1, 3, 3, 12)]
+    plain = PlainHexPlane(1.0, CONFIG, [1, 2])  # 4DGS's layer-by-layer module, contiguous planes
+    plain.load_state_dict({k: v.contiguous() for k, v in state.items()})
+    other = HexPlaneField(1.0, CONFIG, [1, 2])
+    other.load_state_dict(plain.state_dict())
+    pts, times = torch.rand(20, 3) * 2 - 1, torch.rand(20, 1)
+    torch.testing.assert_close(other(pts, times), field(pts, times))
+    torch.testing.assert_close(plain(pts, times), field(pts, times), atol=1e-6, rtol=1e-5)

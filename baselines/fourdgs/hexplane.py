@@ -27,7 +27,14 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from baselines.fourdgs.plane_lookup import PlaneLayout, plane_product_lookup, planes_to_table
+from baselines.fourdgs.plane_lookup import (
+    PlaneLayout,
+    pack_planes,
+    plane_product_lookup,
+    planes_to_table,
+    shared_plane_product_lookup,
+    shared_table,
+)
 from baselines.fourdgs.regularization import hexplane_regularization
 
 PLANE_AXES: tuple[tuple[int, int], ...] = tuple(itertools.combinations(range(4), 2))
@@ -114,6 +121,22 @@ class HexPlaneField(nn.Module):
             list(PLANE_AXES) * len(self.grids),
             len(PLANE_AXES),
         )
+        self.pack_planes()
+
+    def _planes(self) -> list[nn.Parameter]:
+        return [plane for level in self.grids for plane in level]
+
+    def pack_planes(self) -> None:
+        """Make the plane parameters views of one channels-last table (values unchanged).
+
+        The lookup then reads the table in place: no per-call copy of every plane, no transposed
+        copy of their gradients (see plane_lookup.py). Parameters keep their identity, names and
+        shapes (4DGS's state dict); only their strides are channels-last. Called again by
+        ``forward`` whenever something gave the planes separate storage (``.to(device)``).
+        """
+        planes = self._planes()
+        for plane, view in zip(planes, pack_planes(planes, self.layout)):
+            plane.data = view
 
     @property
     def get_aabb(self) -> tuple[Tensor, Tensor]:
@@ -154,8 +177,12 @@ class HexPlaneField(nn.Module):
             raise ValueError("HexPlaneField: non-finite timestamps")
         if pts.shape[0] == 0:
             return pts.new_zeros(0, self.feat_dim)
-        planes = [plane for level in self.grids for plane in level]
-        return plane_product_lookup(planes_to_table(planes), self.layout, self.normalize(pts), timestamps)
+        planes = self._planes()
+        table = shared_table(planes, self.layout)
+        if table is None:
+            self.pack_planes()
+            table = shared_table(planes, self.layout)
+        return shared_plane_product_lookup(planes, table, self.layout, self.normalize(pts), timestamps)
 
     def compute_regulation(
         self, time_smoothness_weight: float, l1_time_planes_weight: float, plane_tv_weight: float

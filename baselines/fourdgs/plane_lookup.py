@@ -79,6 +79,46 @@ def planes_to_table(planes: Sequence[Tensor]) -> Tensor:
     return torch.cat([plane.reshape(channels, -1) for plane in planes], 1).t().contiguous()
 
 
+def table_plane_views(table: Tensor, layout: PlaneLayout) -> list[Tensor]:
+    """The [1, C, H, W] planes of a [num_cells, C] table, as views (channels-last strides)."""
+    return [table[start : start + h * w].view(h, w, table.shape[1]).permute(2, 0, 1).unsqueeze(0)
+            for start, h, w in zip(layout.offset, layout.height, layout.width)]
+
+
+def shared_table(planes: Sequence[Tensor], layout: PlaneLayout) -> Tensor | None:
+    """The [num_cells, C] table the planes are views of, or None when they are not (any more).
+
+    Planes become separate tensors when something replaces their data (``module.to(device)``,
+    a user's ``p.data = ...``); the caller then packs them again.
+    """
+    first = planes[0]
+    if first.dim() != 4 or len(planes) != layout.num_planes:
+        return None
+    channels = first.shape[1]
+    storage = first.untyped_storage()
+    base = first.storage_offset()
+    table = first.new_empty(0).set_(storage, base, (layout.num_cells, channels), (channels, 1))
+    if (base + layout.num_cells * channels) * first.element_size() > storage.nbytes():
+        return None
+    for plane, view in zip(planes, table_plane_views(table, layout)):
+        if (plane.untyped_storage().data_ptr() != storage.data_ptr() or plane.shape != view.shape
+                or plane.stride() != view.stride() or plane.storage_offset() != view.storage_offset()
+                or plane.dtype != view.dtype):
+            return None
+    return table
+
+
+def pack_planes(planes: Sequence[Tensor], layout: PlaneLayout) -> list[Tensor]:
+    """Copy the planes' values into one new table; its plane views, to become the planes' data."""
+    channels = planes[0].shape[1]
+    table = planes[0].new_empty(layout.num_cells, channels)
+    views = table_plane_views(table, layout)
+    with torch.no_grad():
+        for view, plane in zip(views, planes):
+            view.copy_(plane)
+    return views
+
+
 @dataclass
 class _AxisCells:
     """align_corners sampling along one axis: top-left index, fraction, "inside" mask, all [N]."""
@@ -139,53 +179,93 @@ class _PlaneCells:
         return F.embedding_bag(self.corners(plane), table, per_sample_weights=self.weights(plane), mode="sum")
 
 
+def _group_products(cells: _PlaneCells, table: Tensor, layout: PlaneLayout) -> Tensor:
+    """[N, groups * C]: each group's planes sampled and multiplied, groups concatenated."""
+    products = []
+    for first in range(0, layout.num_planes, layout.group):
+        product = cells.sample(table, first)
+        for plane in range(first + 1, first + layout.group):
+            product.mul_(cells.sample(table, plane))
+        products.append(product)
+    return torch.cat(products, 1)
+
+
 class _PlaneProductLookup(torch.autograd.Function):
     @staticmethod
     def forward(ctx, table: Tensor, space: Tensor, time: Tensor, layout: PlaneLayout) -> Tensor:
         coords = torch.cat((space, time), 1).t().contiguous()  # [D, N]
         cells = _PlaneCells(coords, layout)
-        detached = table.detach()  # embedding_bag's fast forward-only path needs no-grad inputs
-        products = []
-        for first in range(0, layout.num_planes, layout.group):
-            product = cells.sample(detached, first)
-            for plane in range(first + 1, first + layout.group):
-                product.mul_(cells.sample(detached, plane))
-            products.append(product)
+        # embedding_bag's fast forward-only path needs no-grad inputs
+        products = _group_products(cells, table.detach(), layout)
         # Samples are recomputed in backward (one cheap embedding_bag each) instead of kept.
         ctx.save_for_backward(table, coords)
         ctx.layout = layout
         ctx.num_space = space.shape[1]
-        return torch.cat(products, 1)
+        return products
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_out: Tensor):
         table, coords = ctx.saved_tensors
-        table = table.detach()
-        layout: PlaneLayout = ctx.layout
-        num_space = ctx.num_space
         need_table, need_space, need_time = ctx.needs_input_grad[:3]
-        cells = _PlaneCells(coords, layout)
-        channels = table.shape[1]
-        grad_table = table.new_zeros(layout.num_cells, channels) if need_table else None
-        grad_coords = coords.new_zeros(coords.shape) if (need_space or need_time) else None
+        grads = _lookup_backward(grad_out, table.detach(), coords, ctx.layout, ctx.num_space,
+                                 need_table, need_space, need_time)
+        return (*grads, None)
 
-        def wants(axis: int) -> bool:
-            return need_space if axis < num_space else need_time
 
-        for group_index, first in enumerate(range(0, layout.num_planes, layout.group)):
-            planes = range(first, first + layout.group)
-            grad_product = grad_out[:, group_index * channels : (group_index + 1) * channels].contiguous()
-            samples = [cells.sample(table, plane) for plane in planes]
-            for plane, grad_sample in zip(planes, _product_grads(grad_product, samples)):
-                if need_table:
-                    _add_table_grad(grad_table, grad_sample, cells, plane)
-                if grad_coords is not None:
-                    _add_coordinate_grads(grad_coords, grad_sample, table, cells, plane, wants)
+class _SharedTableLookup(torch.autograd.Function):
+    """The lookup on planes that are views of one table: no table built, plane gradients as views.
 
-        grad_space = grad_coords[:num_space].t() if need_space else None
-        grad_time = grad_coords[num_space:].t() if need_time else None
-        return grad_table, grad_space, grad_time, None
+    ``table`` is passed detached (it is the planes' own storage); the planes are the inputs that
+    receive gradients, each a view of one [num_cells, C] gradient with the parameters' strides
+    (so autograd hands it over without a copy).
+    """
+
+    @staticmethod
+    def forward(ctx, space: Tensor, time: Tensor, table: Tensor, layout: PlaneLayout, *planes: Tensor) -> Tensor:
+        coords = torch.cat((space, time), 1).t().contiguous()  # [D, N]
+        products = _group_products(_PlaneCells(coords, layout), table, layout)
+        ctx.save_for_backward(coords)
+        ctx.table, ctx.layout, ctx.num_space = table, layout, space.shape[1]
+        return products
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_out: Tensor):
+        (coords,) = ctx.saved_tensors
+        need_space, need_time = ctx.needs_input_grad[:2]
+        need_planes = any(ctx.needs_input_grad[4:])
+        grad_table, grad_space, grad_time = _lookup_backward(
+            grad_out, ctx.table, coords, ctx.layout, ctx.num_space, need_planes, need_space, need_time)
+        plane_grads = table_plane_views(grad_table, ctx.layout) if need_planes else [None] * ctx.layout.num_planes
+        return (grad_space, grad_time, None, None, *plane_grads)
+
+
+def _lookup_backward(grad_out: Tensor, table: Tensor, coords: Tensor, layout: PlaneLayout, num_space: int,
+                     need_table: bool, need_space: bool, need_time: bool
+                     ) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
+    """(grad_table [num_cells, C], grad_space [N, S], grad_time [N, T]) of the group products."""
+    cells = _PlaneCells(coords, layout)
+    channels = table.shape[1]
+    grad_table = table.new_zeros(layout.num_cells, channels) if need_table else None
+    grad_coords = coords.new_zeros(coords.shape) if (need_space or need_time) else None
+
+    def wants(axis: int) -> bool:
+        return need_space if axis < num_space else need_time
+
+    for group_index, first in enumerate(range(0, layout.num_planes, layout.group)):
+        planes = range(first, first + layout.group)
+        grad_product = grad_out[:, group_index * channels : (group_index + 1) * channels].contiguous()
+        samples = [cells.sample(table, plane) for plane in planes]
+        for plane, grad_sample in zip(planes, _product_grads(grad_product, samples)):
+            if need_table:
+                _add_table_grad(grad_table, grad_sample, cells, plane)
+            if grad_coords is not None:
+                _add_coordinate_grads(grad_coords, grad_sample, table, cells, plane, wants)
+
+    grad_space = grad_coords[:num_space].t() if need_space else None
+    grad_time = grad_coords[num_space:].t() if need_time else None
+    return grad_table, grad_space, grad_time
 
 
 def _product_grads(grad_product: Tensor, samples: Sequence[Tensor]) -> list[Tensor]:
@@ -234,9 +314,17 @@ def _add_table_grad(grad_table: Tensor, grad_sample: Tensor, cells: _PlaneCells,
 
     Points are ordered by top-left cell once; every corner is then one bag-per-cell
     ``embedding_bag`` over the sample gradients in that order, added at the corner's row offset.
+    Planes with more than 4 cells per point take ``index_add_`` of the corners instead.
     """
     layout = cells.layout
     start, cell_count = layout.offset[plane], layout.width[plane] * layout.height[plane]
+    if 4 * grad_sample.shape[0] < cell_count:
+        # Few points on a large plane: scatter the 4 weighted corners (O(N C)) instead of one
+        # bag per cell and corner (O(cells C), which made large 4DGS planes slow at small N).
+        corners, weights = cells.corners(plane), cells.weights(plane)
+        for corner in range(4):
+            grad_table.index_add_(0, corners[:, corner], grad_sample * weights[:, corner : corner + 1])
+        return
     base = cells.base(plane) - start
     order = torch.argsort(base)
     counts = torch.bincount(base, minlength=cell_count)
@@ -246,6 +334,20 @@ def _add_table_grad(grad_table: Tensor, grad_sample: Tensor, cells: _PlaneCells,
     for corner, shift in enumerate(layout.shifts[plane]):
         per_cell = F.embedding_bag(order, grad_sample, offsets, per_sample_weights=sorted_weights[corner], mode="sum")
         region[shift:] += per_cell[: cell_count - shift]
+
+
+def shared_plane_product_lookup(planes: Sequence[Tensor], table: Tensor, layout: PlaneLayout, space: Tensor,
+                                time: Tensor | None = None) -> Tensor:
+    """``plane_product_lookup`` on planes that are views of ``table`` (see ``shared_table``).
+
+    Same values and gradients; the per-call table copy and the gradient's transposition back to
+    the planes are gone (the fixed cost that made small point counts slow).
+    """
+    if time is None:
+        time = space.new_zeros(space.shape[0], 0)
+    if space.shape[0] == 0:
+        return space.new_zeros(0, (layout.num_planes // layout.group) * table.shape[1])
+    return _SharedTableLookup.apply(space, time.to(space.dtype), table.detach(), layout, *planes)
 
 
 def plane_product_lookup(table: Tensor, layout: PlaneLayout, space: Tensor, time: Tensor | None = None) -> Tensor:
