@@ -1,6 +1,6 @@
-"""Profile fine-stage training iterations: per-phase medians and the top ops by self CPU time.
+"""Profile fine-stage training iterations: per-phase medians and the aten ops by wall time.
 
-    python benchmarks/profile_step.py --model_from output/skating/point_cloud/iteration_2000
+    python benchmarks/profile_step.py --model_from output/skating/point_cloud/iteration_2000 -- --configs arguments/synthetic/default.py
     python benchmarks/profile_step.py                       # trains coarse + 500 fine iterations first
     python benchmarks/profile_step.py -- --configs none -s data/synthetic/skating_64x48   # 4DGS's bare model
 
@@ -8,9 +8,9 @@ Everything after ``--`` goes to train.py's parser (default: the embedded scene w
 The model is a trained one (``--model_from``, a point_cloud/iteration_N folder written with the
 same config) or the result of a short warm-up (full coarse stage, ``--warmup`` fine iterations),
 so the Gaussian count is the one training spends its time at. Then ``--iters`` fine iterations
-run twice: once timed by the trainer's StageTimer (medians per phase, the profiler's overhead
-excluded), once under ``torch.profiler`` (ops by self CPU time, summed over the iterations and
-divided by their number). Densification and the opacity reset are switched off for the measured
+run twice: once timed by the trainer's StageTimer (medians per phase, no instrumentation), once
+with every aten op timed (``op_table``: wall time per op, summed over the iterations and divided
+by their number; forward, backward and optimizer ops alike). Densification and the opacity reset are switched off for the measured
 iterations (their cost, amortised over their interval, is reported by benchmarks/train_baseline.py),
 so every measured iteration does the same work. Prints Markdown tables (docs/PROFILE.md holds the
 latest ones).
@@ -21,6 +21,7 @@ import argparse
 import statistics
 import sys
 import time
+from collections import defaultdict
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -76,17 +77,36 @@ def phase_medians(trainer, iters: int) -> tuple[dict[str, float], float]:
     return {p: statistics.median(v) for p, v in per_phase.items()}, statistics.median(totals)
 
 
-def op_table(trainer, iters: int, top: int) -> list[tuple[str, float, float, int]]:
-    """[(op, self CPU ms per iteration, share of the total self CPU, calls per iteration)]."""
-    from torch.profiler import ProfilerActivity, profile
+def op_table(trainer, iters: int, top: int) -> tuple[list[tuple[str, float, float, float]], float, float]:
+    """Wall time inside each aten op, timed around the op's call by a TorchDispatchMode.
 
-    with profile(activities=[ProfilerActivity.CPU]) as prof:
+    Returns ([(op, ms per iteration, share of the time in ops, calls per iteration)], ms per
+    iteration in ops, aten calls per iteration). torch.profiler was tried first: on this VM it
+    charged element-wise ops 10-25x their real cost (threshold_backward on [10k, 64]: 3.8 ms under
+    the profiler, 0.1-0.9 ms timed directly), so its table pointed at the wrong ops. The timing
+    mode adds Python overhead per op, so the sum over ops exceeds the plain iteration time; the
+    shares are what to read.
+    """
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    seconds: dict[str, float] = defaultdict(float)
+    calls: dict[str, int] = defaultdict(int)
+
+    class OpTimer(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            start = time.perf_counter()
+            out = func(*args, **(kwargs or {}))
+            name = str(func.overloadpacket)
+            seconds[name] += time.perf_counter() - start
+            calls[name] += 1
+            return out
+
+    with OpTimer():
         _step(trainer, iters)
-    events = [e for e in prof.key_averages() if e.self_cpu_time_total > 0]
-    total = sum(e.self_cpu_time_total for e in events)
-    events.sort(key=lambda e: e.self_cpu_time_total, reverse=True)
-    return [(e.key, e.self_cpu_time_total / 1e3 / iters, e.self_cpu_time_total / total, round(e.count / iters))
-            for e in events[:top]]
+    total = sum(seconds.values())
+    rows = sorted(seconds, key=seconds.get, reverse=True)[:top]
+    table = [(name, seconds[name] * 1e3 / iters, seconds[name] / total, calls[name] / iters) for name in rows]
+    return table, total * 1e3 / iters, sum(calls.values()) / iters
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -104,12 +124,10 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
-    import os
-    if os.environ.get("FTZ"): torch.set_flush_denormal(True)
     trainer = _prepare(train_argv, args.model_from, args.warmup)
     _step(trainer, 3)  # allocator and caches warm
     phases, total = phase_medians(trainer, args.iters)
-    ops = op_table(trainer, args.iters, args.top)
+    ops, ops_ms, op_calls = op_table(trainer, args.iters, args.top)
     model = trainer.ctx.model
     params = sum(p.numel() for g in model.optimizer.param_groups for p in g["params"])
     cam = trainer.train_cameras[0]
@@ -123,9 +141,10 @@ def main(argv: list[str] | None = None) -> int:
     other = total - sum(phases.values())
     print(f"| other (lr, sampler, metrics, log) | {other:.1f} | {other / total:.0%} |")
     print(f"| **iteration** | **{total:.1f}** | |\n")
-    print("| op (self CPU) | ms / iteration | share | calls / iteration |\n|---|---:|---:|---:|")
+    print(f"{op_calls:.0f} aten calls per iteration, {ops_ms:.1f} ms inside them (timed, with the timing overhead)\n")
+    print("| op | ms / iteration | share of op time | calls / iteration |\n|---|---:|---:|---:|")
     for name, ms, share, calls in ops:
-        print(f"| `{name}` | {ms:.2f} | {share:.1%} | {calls} |")
+        print(f"| `{name}` | {ms:.2f} | {share:.1%} | {calls:.0f} |")
     return 0
 
 

@@ -16,11 +16,13 @@ Measured per scene:
 - iterations/s per stage: iterations / the stage's wall time (on_stage_start to on_stage_end,
   which includes the end-of-stage point-cloud save);
 - process CPU time per iteration (all threads; steadier than wall time on a shared machine);
-- the trainer's StageTimer phases per stage, mean ms per iteration and share of the stage's wall
-  time: deform_project (deformation + projection of the batch), rasterize (compositing),
-  loss_backward (losses and the WHOLE backward pass, i.e. through compositing, projection and
-  deformation), densify_step (densification + optimizer step); "other" is the rest of the
-  stage's wall time (learning-rate update, sampler, per-iteration PSNR metric and log, the save);
+- the trainer's StageTimer phases per stage, median ms per iteration (read at every iteration's
+  end) and share of the median iteration: deform_project (deformation + projection of the
+  batch), rasterize (compositing), loss_backward (losses and the WHOLE backward pass, i.e.
+  through compositing, projection and deformation), densify_step (densification + optimizer
+  step); "other" is the median iteration minus the phases' medians (learning-rate update,
+  sampler, per-iteration PSNR metric and log); the stage's mean ms per iteration beside it
+  includes the densification steps and the end-of-stage save;
 - peak RSS: `resource.getrusage(RUSAGE_SELF).ru_maxrss` of the worker process (Python, torch,
   the loaded scene and training). tracemalloc is not used: torch's CPU allocator bypasses it;
 - final and peak number of Gaussians;
@@ -37,6 +39,7 @@ import json
 import os
 import resource
 import shlex
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -114,17 +117,27 @@ def _make_probe_class():
             self.stages: dict[str, dict[str, Any]] = {}
             self.peak_gaussians = 0
             self._start: tuple[float, float, dict[str, float], dict[str, int]] | None = None
+            self._last: tuple[float, dict[str, float]] | None = None  # (wall, phase totals) at the last iteration end
+            self._samples: dict[str, list[float]] = {}  # per-iteration seconds per phase, and "iteration"
 
         def _snapshot(self) -> tuple[float, float, dict[str, float], dict[str, int]]:
             return (time.perf_counter(), time.process_time(), dict(self.timer.total), dict(self.timer.count))
 
         def on_stage_start(self, ctx) -> None:
             self._start = self._snapshot()
+            self._last = (self._start[0], dict(self._start[2]))
+            self._samples = {}
             self.peak_gaussians = max(self.peak_gaussians, ctx.model.num_gaussians)
             self.stages[ctx.stage] = {"gaussians_start": ctx.model.num_gaussians}
 
         def on_iteration_end(self, ctx) -> None:
             self.peak_gaussians = max(self.peak_gaussians, ctx.model.num_gaussians)
+            now, totals = time.perf_counter(), dict(self.timer.total)
+            last_wall, last_totals = self._last
+            self._samples.setdefault("iteration", []).append(now - last_wall)
+            for phase, seconds in totals.items():
+                self._samples.setdefault(phase, []).append(seconds - last_totals.get(phase, 0.0))
+            self._last = (now, totals)
 
         def on_stage_end(self, ctx) -> None:
             wall, cpu, total, count = self._snapshot()
@@ -138,6 +151,7 @@ def _make_probe_class():
                 ms_per_it=1000.0 * (wall - wall0) / max(1, iterations),
                 cpu_ms_per_it=1000.0 * (cpu - cpu0) / max(1, iterations),
                 phases_ms=phases, gaussians_end=ctx.model.num_gaussians,
+                phases_median_ms={k: 1000.0 * statistics.median(v) for k, v in self._samples.items() if v},
             )
 
     return BenchProbe
@@ -220,7 +234,7 @@ def deformation_worker(payload: str) -> None:
     parsed = json.loads(payload)
     if parsed["threads"]:
         torch.set_num_threads(parsed["threads"])
-    module.run(parsed["sizes"], parsed["repeats"], parsed["warmup"])
+    module.run(list(module.CONFIGS), parsed["sizes"], parsed["repeats"], parsed["warmup"])
 
 
 # ------------------------------------------------------------------------------ parent side
@@ -280,20 +294,22 @@ def summary_table(records: list[dict[str, Any]]) -> list[str]:
 
 
 def phase_table(records: list[dict[str, Any]], stage: str) -> list[str]:
+    """Median ms per phase and per whole iteration (the iteration's median, from hook to hook)."""
     head = " | ".join(PHASE_LABELS[p] for p in PHASES)
-    lines = [f"| scene | {head} | other | total ms/it |", "|---|" + "---:|" * (len(PHASES) + 2)]
+    lines = [f"| scene | {head} | other | iteration (median) | mean ms/it |", "|---|" + "---:|" * (len(PHASES) + 3)]
     for r in records:
         s = r.get("stages", {}).get(stage)
-        if not s or "phases_ms" not in s:
+        if not s or "phases_median_ms" not in s:
             continue
-        total = s["ms_per_it"]
+        medians = s["phases_median_ms"]
+        total = medians.get("iteration", s["ms_per_it"])
         cells = []
         for p in PHASES:
-            ms = s["phases_ms"].get(p, 0.0)
+            ms = medians.get(p, 0.0)
             cells.append(f"{ms:.1f} ({100 * ms / total:.0f}%)")
-        other = total - sum(s["phases_ms"].get(p, 0.0) for p in PHASES)
+        other = total - sum(medians.get(p, 0.0) for p in PHASES)
         cells.append(f"{other:.1f} ({100 * other / total:.0f}%)")
-        lines.append(f"| {r['scene']} | " + " | ".join(cells) + f" | {total:.1f} |")
+        lines.append(f"| {r['scene']} | " + " | ".join(cells) + f" | {total:.1f} | {s['ms_per_it']:.1f} |")
     return lines
 
 
@@ -317,7 +333,8 @@ def report_lines(args: argparse.Namespace, records: list[dict[str, Any]], schedu
         f"- config: {config_name}, {schedule}; extra flags: {args.train_args or 'none'}",
         f"- machine: {cpu_model()}, {os.cpu_count()} logical cores; torch {first.get('torch', '?')}, "
         f"{first.get('threads', '?')} threads, backend {first.get('backend', '?')} (compiled kernel: "
-        f"{kernel if kernel.startswith('unavailable') else 'yes'}), OMP_WAIT_POLICY=PASSIVE; "
+        f"{kernel if kernel.startswith('unavailable') else 'yes'}), baselines/thread_policy.py's OpenMP and "
+        "allocator policy; "
         "one fresh process per scene",
         f"- load average (1/5/15 min): {load_start} at start, {load_end} at end",
         "- it/s = iterations / stage wall time; CPU = process CPU time of all threads; peak RSS = ru_maxrss of the "
@@ -327,8 +344,10 @@ def report_lines(args: argparse.Namespace, records: list[dict[str, Any]], schedu
         *summary_table(records),
     ]
     for stage in ("fine", "coarse"):
-        lines += ["", f"Where a {stage}-stage iteration's time goes (mean ms per iteration, share of the stage's "
-                  "wall time; loss+backward holds the whole backward pass):", "", *phase_table(records, stage)]
+        lines += ["", f"Where a {stage}-stage iteration's time goes (median ms per iteration and share of the median "
+                  "iteration; 'other' = the median iteration minus the phases' medians; the mean includes "
+                  "densification steps and the end-of-stage save; loss+backward holds the whole backward pass):",
+                  "", *phase_table(records, stage)]
     return lines
 
 

@@ -24,6 +24,10 @@ import torch.nn.functional as F
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+# A plane with more cells than this many per point gets its table gradient by index_add_ (see
+# _add_table_grad); denser planes by sorted per-cell bags.
+INDEX_ADD_CELLS_PER_POINT = 4
+
 
 @dataclass(frozen=True)
 class PlaneLayout:
@@ -318,7 +322,7 @@ def _add_table_grad(grad_table: Tensor, grad_sample: Tensor, cells: _PlaneCells,
     """
     layout = cells.layout
     start, cell_count = layout.offset[plane], layout.width[plane] * layout.height[plane]
-    if 4 * grad_sample.shape[0] < cell_count:
+    if INDEX_ADD_CELLS_PER_POINT * grad_sample.shape[0] < cell_count:
         # Few points on a large plane: scatter the 4 weighted corners (O(N C)) instead of one
         # bag per cell and corner (O(cells C), which made large 4DGS planes slow at small N).
         corners, weights = cells.corners(plane), cells.weights(plane)
