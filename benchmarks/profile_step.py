@@ -2,7 +2,8 @@
 
     python benchmarks/profile_step.py --model_from output/skating/point_cloud/iteration_2000 -- --configs arguments/synthetic/default.py
     python benchmarks/profile_step.py                       # trains coarse + 500 fine iterations first
-    python benchmarks/profile_step.py -- --configs none -s data/synthetic/skating_64x48   # 4DGS's bare model
+    python benchmarks/profile_step.py --warmup 0 --gaussians 2000 -- --configs none \
+        -s data/synthetic/skating_64x48 --coarse_iterations 0        # 4DGS's bare model, 2k Gaussians
 
 Everything after ``--`` goes to train.py's parser (default: the embedded scene with its config).
 The model is a trained one (``--model_from``, a point_cloud/iteration_N folder written with the
@@ -35,8 +36,10 @@ from baselines.thread_policy import apply_thread_policy  # noqa: E402
 PHASES = ("deform_project", "rasterize", "loss_backward", "densify_step")
 
 
-def _prepare(train_argv: list[str], model_from: Path | None, warmup: int):
+def _prepare(train_argv: list[str], model_from: Path | None, warmup: int, gaussians: int | None = None):
     """A trainer in its fine stage with a trained model and densification off."""
+    import torch
+
     from baselines.fourdgs.app import build_trainer
 
     trainer = build_trainer(["--quiet", "--test_iterations", "-1", "--save_iterations", "-1", *train_argv])
@@ -44,6 +47,15 @@ def _prepare(train_argv: list[str], model_from: Path | None, warmup: int):
         trainer.load_model_from(model_from)
     else:
         trainer.build()
+        if gaussians is not None:  # resample the initial cloud to the requested count (1% jitter)
+            cloud = trainer.ctx.point_cloud
+            points = torch.as_tensor(cloud.points, dtype=torch.float32)
+            generator = torch.Generator().manual_seed(0)
+            pick = torch.randint(len(points), (gaussians,), generator=generator)
+            jitter = 0.01 * trainer.cameras_extent * torch.randn(gaussians, 3, generator=generator)
+            colors = torch.as_tensor(cloud.colors, dtype=torch.float32)[pick]
+            trainer.ctx.model.create_from_pcd(points[pick] + jitter, colors, trainer.cameras_extent,
+                                              device=trainer.device)
         for stage, total in (("coarse", trainer.opt.coarse_iterations), ("fine", warmup)):
             trainer._begin_stage(stage, total)
             for iteration in range(1, total + 1):
@@ -117,6 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model_from", type=Path, help="a point_cloud/iteration_N folder trained with the same config")
     parser.add_argument("--warmup", type=int, default=500, help="fine iterations before measuring (no --model_from)")
+    parser.add_argument("--gaussians", type=int, help="resample the initial cloud to this many (no --model_from)")
     parser.add_argument("--iters", type=int, default=30)
     parser.add_argument("--top", type=int, default=20)
     args = parser.parse_args(argv)
@@ -124,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
-    trainer = _prepare(train_argv, args.model_from, args.warmup)
+    trainer = _prepare(train_argv, args.model_from, args.warmup, args.gaussians)
     _step(trainer, 3)  # allocator and caches warm
     phases, total = phase_medians(trainer, args.iters)
     ops, ops_ms, op_calls = op_table(trainer, args.iters, args.top)

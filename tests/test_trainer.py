@@ -231,3 +231,22 @@ def test_non_finite_gradient_stops_the_run_naming_the_group(tiny_scene, tmp_path
         trainer.train()
     assert torch.isfinite(model._opacity).all()  # the poisoned step never ran
     assert not torch.equal(before, model._opacity)  # iteration 1 did
+
+
+def test_non_finite_gradient_into_the_hexplane_is_caught_without_scanning_the_planes(tiny_scene, tmp_path):
+    """The plane gradients are not scanned (too large); a NaN reaching them arrives through the
+    lookup's output gradient, which also reaches feature_out's weights: the run stops there."""
+    trainer = build_trainer(base_argv(tiny_scene, tmp_path / "nan_grid", 1, 3))
+    trainer.build()
+    grid = trainer.ctx.model._deformation.deformation_net.grid
+
+    def poison_output_gradient(module, inputs, output):
+        if trainer.ctx.stage == "fine" and trainer.ctx.iteration == 2:
+            output.register_hook(lambda grad: torch.full_like(grad, float("nan")))
+
+    grid.register_forward_hook(poison_output_gradient)
+    planes = [p.detach().clone() for level in grid.grids for p in level]
+    with pytest.raises(FloatingPointError, match=r"fine iteration 2 in .*deformation"):
+        trainer.train()
+    assert all(torch.isfinite(p).all() for level in grid.grids for p in level)
+    assert any(not torch.equal(a, b) for a, b in zip(planes, [p for level in grid.grids for p in level]))
