@@ -9,8 +9,12 @@ torch is imported, and only for what the user did not set:
 - ``OMP_WAIT_POLICY=PASSIVE`` with ``GOMP_SPINCOUNT=30000`` (libgomp, torch's OpenMP): a waiting
   thread spins for about 30k iterations (tens of microseconds, enough to catch the next op of a
   step) and then sleeps, so an idle or preempted pool does not burn a loaded machine's CPU;
-- ``OMP_NUM_THREADS`` = the CPUs this process may run on (``os.sched_getaffinity``), when that is
-  fewer than the machine's CPUs (a CPU set or container limit torch would otherwise ignore).
+- ``OMP_NUM_THREADS`` = the CPUs this process may run on (``os.sched_getaffinity``; a CPU set or
+  container limit torch would otherwise ignore), lowered to the CPUs idle at start when other
+  processes keep the machine busy (``/proc/stat`` sampled for 0.2 s; at least 1). On a 2-core
+  machine with other jobs running, a 2-thread step waits at every parallel op for a worker that
+  the scheduler has parked: a fine iteration measured 808 ms with 2 threads and 32 ms with 1
+  (benchmarks/train_baseline.py under load). On a quiet machine every CPU is used.
 
 Allocator (glibc only, any time, unless a ``MALLOC_*`` variable or ``GLIBC_TUNABLES`` is set):
 glibc serves blocks above its mmap threshold (128 KiB, adapting up to 32 MiB) with fresh
@@ -30,6 +34,7 @@ import ctypes
 import os
 import platform
 import sys
+import time
 from typing import MutableMapping
 
 SPIN_COUNT = "30000"
@@ -45,6 +50,45 @@ def available_cpus() -> int:
     if hasattr(os, "sched_getaffinity"):
         return max(1, len(os.sched_getaffinity(0)))
     return max(1, os.cpu_count() or 1)
+
+
+# What the last apply_thread_policy on this process's environment decided, for the run's log.
+last_decision = "no thread policy applied"
+
+
+def idle_cpus(sample_seconds: float = 0.2, stat_path: str = "/proc/stat") -> float | None:
+    """How many CPUs were idle over a short sample (``/proc/stat``), or None where unavailable.
+
+    Idle = idle + iowait jiffies of the aggregate line; niced processes count as busy.
+    """
+
+    def read() -> tuple[int, int] | None:
+        try:
+            with open(stat_path) as handle:
+                fields = handle.readline().split()
+        except OSError:
+            return None
+        if not fields or fields[0] != "cpu" or len(fields) < 6:
+            return None
+        values = [int(v) for v in fields[1:]]
+        return sum(values[:8]), values[3] + values[4]  # (total over user..steal, idle + iowait)
+
+    first = read()
+    if first is None:
+        return None
+    time.sleep(sample_seconds)
+    second = read()
+    if second is None or second[0] <= first[0]:
+        return None
+    share = (second[1] - first[1]) / (second[0] - first[0])
+    return share * (os.cpu_count() or 1)
+
+
+def thread_count(cpus: int, idle: float | None) -> int:
+    """Threads for a process allowed ``cpus`` CPUs when ``idle`` CPUs are free (None: unknown)."""
+    if idle is None:
+        return cpus
+    return max(1, min(cpus, int(idle + 0.5)))
 
 
 def apply_thread_policy(environ: MutableMapping[str, str] | None = None,
@@ -67,10 +111,19 @@ def apply_thread_policy(environ: MutableMapping[str, str] | None = None,
         applied["OMP_WAIT_POLICY"] = "PASSIVE"
         if "GOMP_SPINCOUNT" not in environ:
             applied["GOMP_SPINCOUNT"] = SPIN_COUNT
-    cpus = available_cpus()
-    if "OMP_NUM_THREADS" not in environ and cpus < (os.cpu_count() or cpus):
-        applied["OMP_NUM_THREADS"] = str(cpus)
+    decision = f"OMP_NUM_THREADS={environ['OMP_NUM_THREADS']} (yours)" if "OMP_NUM_THREADS" in environ else ""
+    if "OMP_NUM_THREADS" not in environ:
+        cpus = available_cpus()
+        idle = idle_cpus() if cpus > 1 else None
+        threads = thread_count(cpus, idle)
+        if threads < (os.cpu_count() or cpus):
+            applied["OMP_NUM_THREADS"] = str(threads)
+        busy = f"; {idle:.1f} CPUs idle at start: the machine is busy" if threads < cpus else ""
+        decision = f"{threads} threads ({cpus} CPUs available{busy}; set OMP_NUM_THREADS to choose)"
     environ.update(applied)
+    if own_process:
+        global last_decision
+        last_decision = decision
     return applied
 
 

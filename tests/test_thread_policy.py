@@ -13,6 +13,7 @@ from baselines.fourdgs.app import REPO_ROOT
 
 def test_policy_fills_only_what_the_user_left_unset(monkeypatch):
     monkeypatch.setattr(thread_policy, "available_cpus", lambda: 2)
+    monkeypatch.setattr(thread_policy, "idle_cpus", lambda: 8.0)
     monkeypatch.setattr(thread_policy.os, "cpu_count", lambda: 8)  # a CPU set of 2 on an 8-CPU machine
     env: dict[str, str] = {}
     expected = {"OMP_WAIT_POLICY": "PASSIVE", "GOMP_SPINCOUNT": thread_policy.SPIN_COUNT, "OMP_NUM_THREADS": "2"}
@@ -26,13 +27,44 @@ def test_policy_fills_only_what_the_user_left_unset(monkeypatch):
 
 def test_thread_count_untouched_when_every_cpu_is_available(monkeypatch):
     monkeypatch.setattr(thread_policy, "available_cpus", lambda: 8)
+    monkeypatch.setattr(thread_policy, "idle_cpus", lambda: 7.8)
     monkeypatch.setattr(thread_policy.os, "cpu_count", lambda: 8)
     assert thread_policy.apply_thread_policy({}, torch_loaded=False) == {"OMP_WAIT_POLICY": "PASSIVE",
                                                                          "GOMP_SPINCOUNT": thread_policy.SPIN_COUNT}
 
 
+def test_a_busy_machine_gets_fewer_threads(monkeypatch):
+    monkeypatch.setattr(thread_policy, "available_cpus", lambda: 2)
+    monkeypatch.setattr(thread_policy.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(thread_policy, "idle_cpus", lambda: 0.3)
+    assert thread_policy.apply_thread_policy({}, torch_loaded=False)["OMP_NUM_THREADS"] == "1"
+    monkeypatch.setattr(thread_policy, "idle_cpus", lambda: 1.9)  # quiet: every CPU, nothing to set
+    assert "OMP_NUM_THREADS" not in thread_policy.apply_thread_policy({}, torch_loaded=False)
+    user = {"OMP_NUM_THREADS": "2"}
+    monkeypatch.setattr(thread_policy, "idle_cpus", lambda: 0.0)
+    thread_policy.apply_thread_policy(user, torch_loaded=False)
+    assert user["OMP_NUM_THREADS"] == "2"  # the user's choice wins
+
+
+@pytest.mark.parametrize("cpus, idle, expected", [(2, None, 2), (2, 0.0, 1), (2, 0.6, 1), (2, 1.5, 2), (8, 3.4, 3),
+                                                  (4, 9.0, 4)])
+def test_thread_count_follows_the_idle_cpus(cpus, idle, expected):
+    assert thread_policy.thread_count(cpus, idle) == expected
+
+
+def test_idle_cpus_reads_the_aggregate_line_of_proc_stat(tmp_path, monkeypatch):
+    stat = tmp_path / "stat"
+    # user nice system idle iowait irq softirq steal: 400 jiffies pass, 100 of them idle or iowait
+    stat.write_text("cpu  1000 0 500 2000 100 0 0 0 0 0\ncpu0 1 2 3 4 5 6 7 8\n")
+    monkeypatch.setattr(thread_policy.time, "sleep",
+                        lambda s: stat.write_text("cpu  1250 20 530 2090 110 0 0 0 0 0\n"))
+    monkeypatch.setattr(thread_policy.os, "cpu_count", lambda: 4)
+    assert thread_policy.idle_cpus(stat_path=str(stat)) == pytest.approx(4 * 100 / 400)
+    assert thread_policy.idle_cpus(stat_path=str(tmp_path / "missing")) is None
+
+
 def test_a_user_spin_count_is_kept():
-    env = {"GOMP_SPINCOUNT": "0"}
+    env = {"GOMP_SPINCOUNT": "0", "OMP_NUM_THREADS": "2"}
     assert thread_policy.apply_thread_policy(env, torch_loaded=False) == {"OMP_WAIT_POLICY": "PASSIVE"}
     assert env["GOMP_SPINCOUNT"] == "0"
 

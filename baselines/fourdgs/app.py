@@ -18,6 +18,8 @@ from typing import Callable
 import numpy as np
 import torch
 
+from baselines import thread_policy
+
 from .family_config import dataset_family, default_config, family_background, log_decision, strip_bare_defaults
 from .evaluate import EvalResult, evaluate_cameras, render_video, write_metrics
 from .plugins import Plugin, load_plugin_class, resolve_components
@@ -130,6 +132,7 @@ def build_trainer(argv: list[str]) -> Trainer:
     ]
     for plugin in plugins:
         log.info("plugin %s: components %s", plugin.name, sorted(plugin.enabled) or "none")
+    log.info("threads: %s", thread_policy.last_decision)
     return Trainer(args, scene, plugins, model_path)
 
 
