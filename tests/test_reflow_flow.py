@@ -235,7 +235,7 @@ def test_photometric_loss_ignores_masked_pixels():
     loss = photometric_loss(torch.where(mask[..., None], pred, garbage), target, mask)
     assert float(loss.detach()) < 1e-6  # the masked garbage neither counts nor leaks through SSIM's window
     off = photometric_loss(pred + 0.1, target, mask)
-    assert 0.07 < float(off) < 0.2
+    assert 0.07 < float(off.detach()) < 0.2
     empty = photometric_loss(pred, target, torch.zeros(H, W, dtype=torch.bool))
     empty.backward()
     assert float(empty) == 0.0 and torch.isfinite(pred.grad).all()
