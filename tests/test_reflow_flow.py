@@ -238,7 +238,7 @@ def test_photometric_loss_ignores_masked_pixels():
     assert 0.07 < float(off.detach()) < 0.2
     empty = photometric_loss(pred, target, torch.zeros(H, W, dtype=torch.bool))
     empty.backward()
-    assert float(empty) == 0.0 and torch.isfinite(pred.grad).all()
+    assert float(empty.detach()) == 0.0 and torch.isfinite(pred.grad).all()
 
 
 def test_gaussian_blur_preserves_constants_and_mass():
