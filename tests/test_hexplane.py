@@ -273,3 +273,12 @@ def test_shared_planes_keep_the_4dgs_state_dict():
     pts, times = torch.rand(20, 3) * 2 - 1, torch.rand(20, 1)
     torch.testing.assert_close(other(pts, times), field(pts, times))
     torch.testing.assert_close(plain(pts, times), field(pts, times), atol=1e-6, rtol=1e-5)
+
+
+def test_an_in_place_plane_update_between_forward_and_backward_is_an_error():
+    field = HexPlaneField(1.0, CONFIG, [1, 2])
+    out = field(torch.rand(10, 3) * 2 - 1, torch.rand(10, 1))
+    with torch.no_grad():
+        field.grids[0][0].add_(1.0)  # e.g. an optimizer step before backward
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        out.sum().backward()

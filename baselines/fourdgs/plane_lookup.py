@@ -12,6 +12,12 @@ table gradient orders each plane's points by cell once and sums their sample gra
 with ``embedding_bag`` again; the coordinate gradient uses ``embedding_bag`` with the derivative
 weights. The work runs plane by plane on [N, C] tensors: one [P, N, C] tensor
 would exceed the allocator's reuse threshold at 100k points and page-fault on every call.
+
+Two entry points: ``plane_product_lookup(table, ...)`` takes a table built by
+``planes_to_table`` (a differentiable copy of the planes); ``shared_plane_product_lookup(planes,
+table, ...)`` takes planes that ARE views of one table (``pack_planes``, ``shared_table``), so a
+call copies nothing and the planes' gradients come back as views of one gradient table. The
+HexPlane field uses the second; the first is the general form and the second's test oracle.
 """
 
 from __future__ import annotations
@@ -229,14 +235,16 @@ class _SharedTableLookup(torch.autograd.Function):
     def forward(ctx, space: Tensor, time: Tensor, table: Tensor, layout: PlaneLayout, *planes: Tensor) -> Tensor:
         coords = torch.cat((space, time), 1).t().contiguous()  # [D, N]
         products = _group_products(_PlaneCells(coords, layout), table, layout)
-        ctx.save_for_backward(coords)
+        # the planes are saved (no copy) so that autograd's version check catches an in-place
+        # update between this forward and its backward, which would read the new values
+        ctx.save_for_backward(coords, *planes)
         ctx.table, ctx.layout, ctx.num_space = table, layout, space.shape[1]
         return products
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_out: Tensor):
-        (coords,) = ctx.saved_tensors
+        coords = ctx.saved_tensors[0]
         need_space, need_time = ctx.needs_input_grad[:2]
         need_planes = any(ctx.needs_input_grad[4:])
         grad_table, grad_space, grad_time = _lookup_backward(
