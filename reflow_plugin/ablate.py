@@ -31,14 +31,18 @@ import argparse
 import csv
 import io
 import json
+import os
 import shutil
 import subprocess
 import sys
 import time
+from collections.abc import MutableMapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from baselines.thread_policy import available_cpus
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SUITES = {"synthetic": ("balloon", "playground", "skating", "truck", "umbrella")}
@@ -261,6 +265,19 @@ def parse_runner_args(argv: list[str] | None, prog: str, description: str, names
     return args, names, extra
 
 
+def share_threads(environ: MutableMapping[str, str], jobs: int, executor: str) -> str | None:
+    """OMP_NUM_THREADS for local runs in parallel: the available CPUs split between the jobs.
+
+    Runs started together each see an idle machine and would take every CPU (train.py's thread
+    policy looks at the load only at start); oversubscribed OpenMP threads then wait for each
+    other at every parallel op. Left alone when set by the user, for one job, or on Slurm.
+    """
+    if executor != "local" or jobs <= 1 or "OMP_NUM_THREADS" in environ:
+        return None
+    environ["OMP_NUM_THREADS"] = str(max(1, available_cpus() // jobs))
+    return environ["OMP_NUM_THREADS"]
+
+
 def start_runs(args: argparse.Namespace, names: list[str], extra: list[str], label: str,
                table: dict[str, tuple[str, list[str]]] | None = None) -> tuple[list[RunSpec], list[str]] | None:
     """Plan and run what is not done yet; (specs, failures), or None after printing a bad-input error."""
@@ -273,6 +290,9 @@ def start_runs(args: argparse.Namespace, names: list[str], extra: list[str], lab
     done = sum(is_done(s) for s in specs)
     if done:
         print(f"[{label}] {done} of {len(specs)} runs already done (kept)")
+    threads = share_threads(os.environ, args.jobs, args.executor)
+    if threads is not None:
+        print(f"[{label}] {args.jobs} local jobs: OMP_NUM_THREADS={threads} each (set it to choose)")
     return specs, run_all(specs, executor, args.jobs)
 
 

@@ -155,3 +155,15 @@ def test_sweep_variants_change_one_knob_each(tmp_path):
         added = [a for a in command if a not in reference]
         assert (added == []) == (name in ("reflow", "baseline")), (name, added)
     assert "--flow_every" in commands["reflow_flow_every"] and "-r" in commands["baseline_resolution"]
+
+
+def test_parallel_local_jobs_share_the_cpus(monkeypatch):
+    from reflow_plugin import ablate
+
+    monkeypatch.setattr(ablate, "available_cpus", lambda: 8)
+    env: dict[str, str] = {}
+    assert ablate.share_threads(env, 3, "local") == "2" and env == {"OMP_NUM_THREADS": "2"}
+    assert ablate.share_threads({}, 16, "local") == "1"  # never 0
+    for environ, jobs, executor in (({}, 1, "local"), ({}, 4, "slurm"), ({"OMP_NUM_THREADS": "4"}, 2, "local")):
+        before = dict(environ)
+        assert ablate.share_threads(environ, jobs, executor) is None and environ == before
