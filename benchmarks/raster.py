@@ -41,7 +41,7 @@ from typing import Callable
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from baselines.thread_policy import apply_thread_policy  # noqa: E402
 
-apply_thread_policy()  # before torch: passive OpenMP waits unless OMP_WAIT_POLICY is set
+apply_thread_policy()  # before torch: OpenMP waits, threads, allocator (baselines/thread_policy.py)
 
 import torch  # noqa: E402
 

@@ -1,6 +1,6 @@
 """What ReFlow costs per fine-stage iteration, next to the 4DGS baseline, measured in ONE run.
 
-    OMP_WAIT_POLICY=PASSIVE python benchmarks/reflow_overhead.py [--iterations 30] [--scene skating]
+    python benchmarks/reflow_overhead.py [--iterations 30] [--scene skating]
 
 Every variant trains the same scene at the same batch size (2 views) from the SAME Gaussians
 (ReFlow's initial cloud: the host's triangulated points plus the seeded dynamic points), with
@@ -26,7 +26,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 from baselines.thread_policy import apply_thread_policy  # noqa: E402
 
-apply_thread_policy()  # before torch: passive OpenMP waits unless OMP_WAIT_POLICY is set
+apply_thread_policy()  # before torch: OpenMP waits, threads, allocator (baselines/thread_policy.py)
 
 import torch  # noqa: E402
 

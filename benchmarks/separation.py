@@ -1,6 +1,6 @@
 """Cost of the separated deformation versus the share of dynamic Gaussians, in one run.
 
-    OMP_WAIT_POLICY=PASSIVE python benchmarks/separation.py [--gaussians 20000] [--repeats 9]
+    python benchmarks/separation.py [--gaussians 20000] [--repeats 9]
 
 Forward + backward of the deformation alone (synthetic config's HexPlane), median of interleaved
 repeats: 4DGS's `DeformNetwork` on every Gaussian, then `SeparatedDeformation` with 0%, 20%, 50%
@@ -19,7 +19,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from baselines.thread_policy import apply_thread_policy  # noqa: E402
 
-apply_thread_policy()  # before torch: passive OpenMP waits unless OMP_WAIT_POLICY is set
+apply_thread_policy()  # before torch: OpenMP waits, threads, allocator (baselines/thread_policy.py)
 
 import torch  # noqa: E402
 
