@@ -150,4 +150,4 @@ def test_anchor_is_what_keeps_seeds_at_their_keyframe():
         offset = (at_own_time - model.get_xyz).norm(dim=1).max()
         assert (offset < 1e-6) == anchored, (anchored, float(offset))
         assert (elsewhere - model.get_xyz).norm(dim=1).max() > 1e-3
-    assert np.isfinite(float(offset))
+    assert np.isfinite(float(offset.detach()))
