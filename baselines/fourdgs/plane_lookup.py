@@ -207,8 +207,10 @@ class _PlaneProductLookup(torch.autograd.Function):
         cells = _PlaneCells(coords, layout)
         # embedding_bag's fast forward-only path needs no-grad inputs
         products = _group_products(cells, table.detach(), layout)
-        # Samples are recomputed in backward (one cheap embedding_bag each) instead of kept.
+        # Samples are recomputed in backward (one cheap embedding_bag each) instead of kept; the
+        # corner rows and weights are kept (about 200 small ops to rebuild).
         ctx.save_for_backward(table, coords)
+        ctx.cells = cells
         ctx.layout = layout
         ctx.num_space = space.shape[1]
         return products
@@ -218,7 +220,7 @@ class _PlaneProductLookup(torch.autograd.Function):
     def backward(ctx, grad_out: Tensor):
         table, coords = ctx.saved_tensors
         need_table, need_space, need_time = ctx.needs_input_grad[:3]
-        grads = _lookup_backward(grad_out, table.detach(), coords, ctx.layout, ctx.num_space,
+        grads = _lookup_backward(grad_out, table.detach(), coords, ctx.cells, ctx.num_space,
                                  need_table, need_space, need_time)
         return (*grads, None)
 
@@ -234,11 +236,12 @@ class _SharedTableLookup(torch.autograd.Function):
     @staticmethod
     def forward(ctx, space: Tensor, time: Tensor, table: Tensor, layout: PlaneLayout, *planes: Tensor) -> Tensor:
         coords = torch.cat((space, time), 1).t().contiguous()  # [D, N]
-        products = _group_products(_PlaneCells(coords, layout), table, layout)
+        cells = _PlaneCells(coords, layout)
+        products = _group_products(cells, table, layout)
         # the planes are saved (no copy) so that autograd's version check catches an in-place
         # update between this forward and its backward, which would read the new values
         ctx.save_for_backward(coords, *planes)
-        ctx.table, ctx.layout, ctx.num_space = table, layout, space.shape[1]
+        ctx.table, ctx.cells, ctx.layout, ctx.num_space = table, cells, layout, space.shape[1]
         return products
 
     @staticmethod
@@ -248,16 +251,19 @@ class _SharedTableLookup(torch.autograd.Function):
         need_space, need_time = ctx.needs_input_grad[:2]
         need_planes = any(ctx.needs_input_grad[4:])
         grad_table, grad_space, grad_time = _lookup_backward(
-            grad_out, ctx.table, coords, ctx.layout, ctx.num_space, need_planes, need_space, need_time)
+            grad_out, ctx.table, coords, ctx.cells, ctx.num_space, need_planes, need_space, need_time)
         plane_grads = table_plane_views(grad_table, ctx.layout) if need_planes else [None] * ctx.layout.num_planes
         return (grad_space, grad_time, None, None, *plane_grads)
 
 
-def _lookup_backward(grad_out: Tensor, table: Tensor, coords: Tensor, layout: PlaneLayout, num_space: int,
+def _lookup_backward(grad_out: Tensor, table: Tensor, coords: Tensor, cells: _PlaneCells, num_space: int,
                      need_table: bool, need_space: bool, need_time: bool
                      ) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
-    """(grad_table [num_cells, C], grad_space [N, S], grad_time [N, T]) of the group products."""
-    cells = _PlaneCells(coords, layout)
+    """(grad_table [num_cells, C], grad_space [N, S], grad_time [N, T]) of the group products.
+
+    ``cells``: the forward's corner rows and weights of the points ``coords`` [D, N].
+    """
+    layout = cells.layout
     channels = table.shape[1]
     grad_table = table.new_zeros(layout.num_cells, channels) if need_table else None
     grad_coords = coords.new_zeros(coords.shape) if (need_space or need_time) else None
