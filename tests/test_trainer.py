@@ -250,3 +250,29 @@ def test_non_finite_gradient_into_the_hexplane_is_caught_without_scanning_the_pl
         trainer.train()
     assert all(torch.isfinite(p).all() for level in grid.grids for p in level)
     assert any(not torch.equal(a, b) for a, b in zip(planes, [p for level in grid.grids for p in level]))
+
+
+def test_max_abs_flags_nan_and_inf_and_measures_finite_gradients():
+    from baselines.fourdgs.trainer import _max_abs
+
+    assert float(_max_abs([torch.tensor([1.0, -3.0]), torch.tensor([[2.0]])])) == 3.0
+    assert torch.isnan(_max_abs([torch.tensor([1.0]), torch.tensor([float("nan"), 0.0])]))
+    assert torch.isinf(_max_abs([torch.tensor([float("-inf")]), torch.tensor([1.0])]))
+
+
+def test_adam_falls_back_where_torch_has_no_fused_kernel(monkeypatch):
+    from baselines.fourdgs import gaussian_model
+
+    real = torch.optim.Adam
+
+    def no_fused(params, **kwargs):
+        if kwargs.get("fused"):
+            raise RuntimeError("`fused=True` requires all the params to be CUDA tensors")  # torch < 2.4 on CPU
+        return real(params, **kwargs)
+
+    monkeypatch.setattr(gaussian_model.torch.optim, "Adam", no_fused)
+    p = torch.nn.Parameter(torch.zeros(3))
+    optimizer = gaussian_model._adam([{"params": [p], "lr": 0.1, "name": "xyz"}], fused=True)
+    assert not optimizer.defaults.get("fused") and optimizer.defaults["eps"] == 1e-15
+    monkeypatch.setattr(gaussian_model.torch.optim, "Adam", real)
+    assert gaussian_model._adam([{"params": [p], "lr": 0.1, "name": "xyz"}], fused=True).defaults["fused"]

@@ -96,8 +96,18 @@ def _opt_value(opt: Any, name: str) -> Any:
 
 
 def _fused_adam_supported(device: torch.device) -> bool:
-    """torch's fused Adam runs on CPU and CUDA (and a few others); elsewhere the per-tensor one."""
+    """torch's fused Adam runs on CPU (torch >= 2.4) and CUDA; elsewhere the per-tensor one."""
     return torch.device(device).type in ("cpu", "cuda")
+
+
+def _adam(groups: list[dict], fused: bool) -> torch.optim.Adam:
+    """4DGS's Adam (eps 1e-15), fused where this torch build supports it for these parameters."""
+    if fused:
+        try:
+            return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
+        except RuntimeError:  # torch < 2.4 has no fused Adam on CPU
+            pass
+    return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
 
 
 class GaussianModel:
@@ -304,7 +314,7 @@ class GaussianModel:
                    for n, p in self._extra_params.items()]
         # fused: one kernel per group instead of ~10 ops per tensor (the deformation group alone
         # holds 20+ tensors); same update up to float rounding
-        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=_fused_adam_supported(device))
+        self.optimizer = _adam(groups, fused=_fused_adam_supported(device))
 
         max_steps = _opt_value(opt, "position_lr_max_steps")
         deformation_delay = _opt_value(opt, "deformation_lr_delay_mult")

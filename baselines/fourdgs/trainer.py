@@ -22,7 +22,6 @@ from typing import Any
 
 import torch
 from torch import Tensor
-from torch.nn.utils import get_total_norm
 
 from baselines.data import SceneInfo, initial_point_cloud
 from baselines.metrics import psnr, ssim, ssim_map
@@ -74,6 +73,15 @@ def peak_rss_mib() -> float:
     """Peak resident memory of this process in MiB (ru_maxrss: KiB on Linux, bytes on macOS)."""
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0
+
+
+def _max_abs(tensors: list[Tensor]) -> Tensor:
+    """max |x| over all tensors (NaN if any entry is NaN): one fused pass where torch has one."""
+    try:
+        from torch.nn.utils import get_total_norm  # torch >= 2.6
+    except ImportError:
+        return torch.stack([t.detach().abs().max() for t in tensors]).max()
+    return get_total_norm(tensors, norm_type=float("inf"))
 
 
 class Trainer:
@@ -245,7 +253,7 @@ class Trainer:
         grads = [p.grad for group in optimizer.param_groups if group["name"] != "grid"
                  for p in group["params"] if p.grad is not None]
         # one fused pass (max |g| is NaN/inf iff some entry is) instead of a check and sync per tensor
-        if not grads or bool(torch.isfinite(get_total_norm(grads, norm_type=float("inf")))):
+        if not grads or bool(torch.isfinite(_max_abs(grads))):
             return
         bad = [group for group in optimizer.param_groups
                if any(p.grad is not None and not bool(torch.isfinite(p.grad).all()) for p in group["params"])]
