@@ -102,12 +102,10 @@ def _fused_adam_supported(device: torch.device) -> bool:
 
 def _adam(groups: list[dict], fused: bool) -> torch.optim.Adam:
     """4DGS's Adam (eps 1e-15), fused where this torch build supports it for these parameters."""
-    if fused:
-        try:
-            return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
-        except RuntimeError:  # torch < 2.4 has no fused Adam on CPU
-            pass
-    return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+    try:
+        return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=fused or None)
+    except RuntimeError:  # torch < 2.4 has no fused Adam on CPU: the per-tensor one
+        return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
 
 
 class GaussianModel:
