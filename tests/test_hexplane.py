@@ -4,6 +4,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from baselines.fourdgs import plane_kernel
 from baselines.fourdgs.hexplane import HexPlaneField, sample_plane
 from baselines.fourdgs.regularization import (
     hexplane_regularization,
@@ -11,6 +12,19 @@ from baselines.fourdgs.regularization import (
     plane_smoothness,
 )
 from benchmarks.deformation import PlainHexPlane
+
+# Both lookup paths: the compiled kernel (plane_kernel.py) and the torch path it falls back to
+# (parametrised indirectly: ["kernel", "torch"]).
+@pytest.fixture
+def lookup_engine(request, monkeypatch):
+    engine = request.param
+    monkeypatch.setenv(plane_kernel.ENV_SWITCH, "1" if engine == "kernel" else "0")
+    if engine == "kernel":
+        ok, reason = plane_kernel.LIBRARY.available()
+        if not ok:
+            pytest.skip(reason)
+    return engine
+
 
 CONFIG = {"grid_dimensions": 2, "input_coordinate_dim": 4, "output_coordinate_dim": 3, "resolution": [4, 5, 6, 3]}
 
@@ -71,7 +85,8 @@ def test_field_feature_is_product_of_plane_samples():
     assert value.item() == pytest.approx(3.0 * 0.5)
 
 
-def test_lookup_matches_grid_sample_values_and_gradients():
+@pytest.mark.parametrize("lookup_engine", ["kernel", "torch"], indirect=True)
+def test_lookup_matches_grid_sample_values_and_gradients(lookup_engine):
     torch.manual_seed(0)
     # the last two have more than 4 cells per point: the index_add_ branch of the table gradient
     for height, width in [(5, 7), (1, 6), (6, 1), (25, 16), (40, 50), (1, 1300)]:
@@ -91,7 +106,8 @@ def test_lookup_matches_grid_sample_values_and_gradients():
             torch.testing.assert_close(ours_grad, ref_grad)
 
 
-def test_field_matches_4dgs_recipe_with_custom_aabb():
+@pytest.mark.parametrize("lookup_engine", ["kernel", "torch"], indirect=True)
+def test_field_matches_4dgs_recipe_with_custom_aabb(lookup_engine):
     torch.manual_seed(1)
     field = HexPlaneField(1.6, CONFIG, [1, 2])
     plain = PlainHexPlane(1.6, CONFIG, [1, 2])
@@ -234,7 +250,8 @@ def test_planes_are_views_of_one_table_and_their_gradients_too():
     assert all(p.grad.stride() == p.stride() for p in planes)
 
 
-def test_shared_table_lookup_equals_the_copy_path_after_updates_and_repacking():
+@pytest.mark.parametrize("lookup_engine", ["kernel", "torch"], indirect=True)
+def test_shared_table_lookup_equals_the_copy_path_after_updates_and_repacking(lookup_engine):
     torch.manual_seed(1)
     field = HexPlaneField(1.0, CONFIG, [1, 2])
     with torch.no_grad():  # non-trivial time planes

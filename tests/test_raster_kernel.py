@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from baselines import native_build
 from baselines.render import kernel, rasterize
 from baselines.render.composite_reference import composite_reference
 from baselines.render.tiles import bin_gaussians
@@ -197,8 +198,8 @@ def test_env_var_forces_torch_path_and_logs_once(monkeypatch, caplog):
 @pytest.fixture
 def fresh_kernel_state(monkeypatch, tmp_path):
     """Forget the loaded library and point the cache at an empty directory."""
-    monkeypatch.setattr(kernel, "_library", None)
-    monkeypatch.setattr(kernel, "_load_error", None)
+    monkeypatch.setattr(kernel.LIBRARY, "_library", None)
+    monkeypatch.setattr(kernel.LIBRARY, "_load_error", None)
     monkeypatch.setenv(kernel.ENV_CACHE_DIR, str(tmp_path / "cache"))
     monkeypatch.delenv(kernel.ENV_SWITCH, raising=False)
     return tmp_path / "cache"
@@ -243,7 +244,6 @@ def test_concurrent_builds_leave_one_valid_library(fresh_kernel_state, monkeypat
         pytest.skip("no C++ compiler")
     source = tmp_path / "tiny.cpp"
     source.write_text('extern "C" int rk_abi_version() { return 7; }\n')
-    monkeypatch.setattr(kernel, "SOURCE", source)
     slow = tmp_path / "slow-c++"
     slow.write_text(f'#!/bin/sh\nsleep 0.3\nexec "{compiler}" "$@"\n')
     slow.chmod(0o755)
@@ -252,7 +252,7 @@ def test_concurrent_builds_leave_one_valid_library(fresh_kernel_state, monkeypat
 
     def build():
         try:
-            kernel._build(str(slow), target)
+            native_build.build(str(slow), source, target)
         except Exception as exc:  # reported below
             errors.append(exc)
 
@@ -275,7 +275,7 @@ def test_cached_library_is_loaded_without_rebuilding(compiled, fresh_kernel_stat
     def no_build(*args):
         raise AssertionError("rebuilt although the cache holds the library")
 
-    monkeypatch.setattr(kernel, "_build", no_build)
+    monkeypatch.setattr(kernel.LIBRARY, "build", no_build)
     ok, path = kernel.kernel_available()
     assert ok and Path(path) == target
 

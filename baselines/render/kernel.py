@@ -9,20 +9,11 @@ scales (and reach `meta.means2d.grad` for densification). The rules and the orac
 composite_reference.py; the C++ header comment explains the tiling, the early exits and why the
 backward pass is bitwise deterministic across thread counts.
 
-Building. The kernel is a plain C++17 shared library without Python or torch headers, compiled
-with the system compiler (`$CXX`, else c++, g++ or clang++) on first use and loaded with ctypes;
-tensors are passed as raw pointers to contiguous memory. That takes 5 to 10 s, where a
-`torch.utils.cpp_extension` build spends most of a minute parsing torch headers, and it needs no
-ninja. The flags are portable (-O3, no -march=native), so a cache shared by machines of one
-architecture stays valid: the AVX2 pixel loops are compiled as separate functions (a target
-attribute) and chosen at run time when the CPU has AVX2; every other CPU, and float64, runs the
-portable variant, which gives bitwise identical results. The library is cached under
-`$REFLOW4DGS_KERNEL_CACHE`, else `$XDG_CACHE_HOME/reflow4dgs/kernels`, else
-`~/.cache/reflow4dgs/kernels`, in a file named by a hash of the source, the compiler (path and
-`--version`), the flags and the platform; the torch version is not part of the key because the
-library does not link torch. Each build writes into a private temporary directory and is moved
-into place with an atomic rename, so processes that build at the same time (pytest-xdist, two
-trainings) never see a torn file.
+Building: a plain C++17 shared library compiled on first use and cached, as every compiled kernel
+here (baselines/native_build.py: compiler lookup, cache location and key, atomic builds). The AVX2
+pixel loops are compiled as separate functions (a target attribute) and chosen at run time when
+the CPU has AVX2; every other CPU, and float64, runs the portable variant, which gives bitwise
+identical results.
 
 Switches: `REFLOW4DGS_CPU_KERNEL=0` (or false/off/no) makes the cpu backend use the torch tiled
 path. Without a compiler, or when the build fails, `kernel_available()` returns (False, reason)
@@ -35,20 +26,16 @@ bfloat16 and non-CPU tensors take the torch tiled path (float16 is rejected by v
 from __future__ import annotations
 
 import ctypes
-import hashlib
 import logging
 import os
-import platform
-import shutil
-import subprocess
-import sys
-import tempfile
-import threading
 from pathlib import Path
 
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
+
+from baselines import native_build
+from baselines.native_build import ENV_CACHE_DIR, KernelUnavailable, find_compiler  # noqa: F401 (public names)
 
 from .projection import Projection
 from .tiles import TILE_SIZE, TileBins
@@ -56,21 +43,13 @@ from .tiles import TILE_SIZE, TileBins
 logger = logging.getLogger(__name__)
 
 ENV_SWITCH = "REFLOW4DGS_CPU_KERNEL"
-ENV_CACHE_DIR = "REFLOW4DGS_KERNEL_CACHE"
-ENV_COMPILER = "CXX"
 ENV_ISA = "REFLOW4DGS_KERNEL_ISA"
 # Instruction-set variants of the kernel's pixel loops (the `isa` argument of its entry points).
 ISA_CODES = {"auto": 0, "portable": 1, "avx2": 2}
 SOURCE = Path(__file__).resolve().parent / "csrc" / "raster_kernel.cpp"
 ABI_VERSION = 2  # must equal kAbiVersion in the C++ source
-CXX_FLAGS = ("-O3", "-std=c++17", "-shared", "-fPIC", "-ffp-contract=off", "-pthread")
-COMPILE_TIMEOUT_S = 600
 _SUPPORTED_DTYPES = {torch.float32: "f32", torch.float64: "f64"}
 _OFF_VALUES = {"0", "false", "off", "no"}
-
-
-class KernelUnavailable(RuntimeError):
-    """The compiled kernel cannot be built or loaded; the message says why."""
 
 
 def disabled_by_env() -> str | None:
@@ -79,71 +58,6 @@ def disabled_by_env() -> str | None:
     if value in _OFF_VALUES:
         return f"the compiled CPU kernel is disabled by {ENV_SWITCH}={os.environ[ENV_SWITCH]}"
     return None
-
-
-def cache_dir() -> Path:
-    """Directory holding built kernel libraries (see the module docstring for the lookup order)."""
-    explicit = os.environ.get(ENV_CACHE_DIR)
-    if explicit:
-        return Path(explicit).expanduser()
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base).expanduser() / "reflow4dgs" / "kernels"
-
-
-def find_compiler() -> str | None:
-    """Absolute path of the C++ compiler to use: $CXX, else the first of c++, g++, clang++."""
-    candidates = [os.environ[ENV_COMPILER]] if os.environ.get(ENV_COMPILER) else ["c++", "g++", "clang++"]
-    for name in candidates:
-        found = shutil.which(name)
-        if found:
-            return found
-    return None
-
-
-def _compiler_identity(compiler: str) -> str:
-    try:
-        proc = subprocess.run([compiler, "--version"], capture_output=True, text=True, timeout=60)
-    except (OSError, subprocess.SubprocessError) as exc:
-        raise KernelUnavailable(f"the C++ compiler {compiler} does not run ({exc})") from exc
-    return proc.stdout + proc.stderr
-
-
-def library_path(compiler: str) -> Path:
-    """Cache path of the library built from the current source with `compiler`."""
-    key = hashlib.sha256()
-    for part in (
-        SOURCE.read_bytes(),
-        str(ABI_VERSION).encode(),
-        compiler.encode(),
-        _compiler_identity(compiler).encode(),
-        " ".join(CXX_FLAGS).encode(),
-        f"{sys.platform}-{platform.machine()}".encode(),
-    ):
-        key.update(part)
-        key.update(b"\0")
-    return cache_dir() / f"raster_kernel-{key.hexdigest()[:24]}.so"
-
-
-def _build(compiler: str, target: Path) -> None:
-    """Compile the source into `target` atomically (private temp dir, then os.replace)."""
-    try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        tmp_dir = tempfile.mkdtemp(prefix=".build-", dir=target.parent)
-    except OSError as exc:
-        raise KernelUnavailable(f"cannot write the kernel cache {target.parent} ({exc}); set {ENV_CACHE_DIR}") from exc
-    try:
-        built = Path(tmp_dir) / target.name
-        cmd = [compiler, *CXX_FLAGS, str(SOURCE), "-o", str(built)]
-        try:
-            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=COMPILE_TIMEOUT_S)
-        except (OSError, subprocess.SubprocessError) as exc:
-            raise KernelUnavailable(f"running {' '.join(cmd)} failed ({exc})") from exc
-        if proc.returncode != 0:
-            tail = (proc.stderr or proc.stdout).strip()[-2000:]
-            raise KernelUnavailable(f"compiling {SOURCE.name} failed (exit {proc.returncode}): {' '.join(cmd)}\n{tail}")
-        os.replace(built, target)
-    finally:
-        shutil.rmtree(tmp_dir, ignore_errors=True)
 
 
 def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
@@ -176,29 +90,12 @@ def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
     return lib
 
 
-def _load_or_build() -> ctypes.CDLL:
-    if not SOURCE.is_file():
-        raise KernelUnavailable(f"kernel source {SOURCE} is missing from the installation")
-    compiler = find_compiler()
-    if compiler is None:
-        wanted = f"$CXX={os.environ[ENV_COMPILER]!r}" if os.environ.get(ENV_COMPILER) else "c++, g++ or clang++"
-        raise KernelUnavailable(f"no C++ compiler found ({wanted} not on PATH)")
-    target = library_path(compiler)
-    if target.is_file():
-        try:
-            return _bind(ctypes.CDLL(str(target)))
-        except (OSError, AttributeError, KernelUnavailable) as exc:
-            logger.warning("cached kernel %s does not load (%s); rebuilding it", target, exc)
-    _build(compiler, target)
-    try:
-        return _bind(ctypes.CDLL(str(target)))
-    except (OSError, AttributeError) as exc:
-        raise KernelUnavailable(f"the freshly built kernel {target} does not load ({exc})") from exc
+LIBRARY = native_build.NativeLibrary("raster_kernel", SOURCE, ABI_VERSION, _bind)
 
 
-_lock = threading.Lock()
-_library: ctypes.CDLL | None = None
-_load_error: str | None = None
+def library_path(compiler: str) -> Path:
+    """Cache path of the compositing library built with `compiler`."""
+    return LIBRARY.path(compiler)
 
 
 def load_library() -> ctypes.CDLL:
@@ -207,16 +104,7 @@ def load_library() -> ctypes.CDLL:
     Raises:
         KernelUnavailable: with the reason (no compiler, build failure, unwritable cache, ...).
     """
-    global _library, _load_error
-    with _lock:
-        if _library is None and _load_error is None:
-            try:
-                _library = _load_or_build()
-            except KernelUnavailable as exc:
-                _load_error = str(exc)
-        if _library is None:
-            raise KernelUnavailable(_load_error)
-        return _library
+    return LIBRARY.load()
 
 
 def kernel_available() -> tuple[bool, str]:
@@ -227,11 +115,7 @@ def kernel_available() -> tuple[bool, str]:
     reason = disabled_by_env()
     if reason is not None:
         return False, reason
-    try:
-        lib = load_library()
-    except KernelUnavailable as exc:
-        return False, str(exc)
-    return True, str(lib._name)
+    return LIBRARY.available()
 
 
 def unusable_reason(features: Tensor) -> str | None:
