@@ -7,7 +7,8 @@ For each direction (a -> b and b -> a) of the pair:
     L_cr   = photo(render_b warped by F, I_a)          L^cam_cr = photo(render_b warped by F^cam, I_a) on static pixels
 
 on the pixels where the flow is valid and lands inside image b (and, with the `occlusion`
-component, passes the forward-backward test of the pair's two full flows). Static pixels: the
+component, passes the forward-backward test of the pair's two full flows; with
+`full_flow_dynamic_only`, a diagnostic of ours, L_mc and L_cr only on dynamic pixels). Static pixels: the
 rendered dynamic-ness channel (1 for dynamic Gaussians) below 0.5 of the pixel's opacity.
 Directions are averaged; the returned terms are already weighted:
 
@@ -50,6 +51,7 @@ class MatchingConfig:
     occlusion: bool = False
     occlusion_alpha1: float = 0.01
     occlusion_alpha2: float = 0.5
+    full_flow_dynamic_only: bool = False  # full flow terms on dynamic pixels only (needs extras[DYNAMIC_KEY])
 
     @property
     def lambda_cr(self) -> float:
@@ -99,14 +101,19 @@ class _Terms:
         return out
 
 
+def _static_pixels(view: ViewRender) -> Tensor:
+    """[H, W] bool: pixels whose rendered dynamic share (extras[DYNAMIC_KEY] / alpha) is below STATIC_BELOW."""
+    return (view.extras[DYNAMIC_KEY][..., 0] / view.alpha[..., 0].clamp_min(1e-6)) < STATIC_BELOW
+
+
 def pair_losses(views: list[ViewRender], config: MatchingConfig, use_full: bool, use_cam: bool,
                 blurred: Callable[[int, float], tuple[Tensor, Tensor]] | None = None) -> PairResult:
     """Flow matching losses of a 2-view batch (see the module docstring).
 
     Args:
         views: the pair's two composited views; with `use_full` each carries extras[FLOW_KEY]
-            ([H, W, 7] flow channels towards the other view), with `use_cam` extras[DYNAMIC_KEY]
-            ([H, W, 1]).
+            ([H, W, 7] flow channels towards the other view), with `use_cam` or
+            `config.full_flow_dynamic_only` extras[DYNAMIC_KEY] ([H, W, 1]).
         blurred: (view index k, sigma) -> (blurred I_other, blurred I_k), for `blur_sigmas`.
     """
     result = PairResult()
@@ -126,6 +133,8 @@ def pair_losses(views: list[ViewRender], config: MatchingConfig, use_full: bool,
             mask = valid & inside
             if config.occlusion:
                 mask = mask & occlusion_mask(flow, full_flows[1 - k][0], config.occlusion_alpha1, config.occlusion_alpha2)
+            if config.full_flow_dynamic_only:
+                mask = mask & ~_static_pixels(a)
             terms.add("mc", warped[..., :3], gt_a, mask)
             terms.add("cr", warped[..., 3:], gt_a, mask)
             if blurred is not None:
@@ -137,7 +146,7 @@ def pair_losses(views: list[ViewRender], config: MatchingConfig, use_full: bool,
         if use_cam:
             flow_c, valid_c = camera_flow(a.depth, a.alpha, a.camera.K, a.camera.viewmat, b.camera.K,
                                           b.camera.viewmat, config.min_alpha)
-            static = (a.extras[DYNAMIC_KEY][..., 0] / a.alpha[..., 0].clamp_min(1e-6)) < STATIC_BELOW
+            static = _static_pixels(a)
             warped_c, inside = backward_warp(sources, flow_c)
             mask = valid_c & inside & static
             terms.add("cam_mc", warped_c[..., :3], gt_a, mask)

@@ -18,6 +18,7 @@ LABEL_SOURCES = ("auto", "masks", "estimate", "none")
 UPGRADE_LABELS = ("auto", "motion", "checkpoint")
 STATIC_DECODERS = ("none", "triplane")
 CANONICAL_PROVIDERS = ("auto", "depth", "flow")
+FULL_FLOW_REGIONS = ("all", "dynamic")
 
 
 def _non_negative(value: float) -> str | None:
@@ -62,6 +63,10 @@ class ReFlowParams:
                                               "these Gaussian sigmas in pixels (ours, beyond the paper: a wider "
                                               "capture range for large motion); [] = the paper's loss",
                                           check=_sigmas)
+    full_flow_region: str = param("all", "pixels full flow matching is evaluated on: all (the paper) or dynamic "
+                                         "(ours, a diagnostic: only where the rendered dynamic share is >= 0.5; "
+                                         "static pixels are then left to camera flow matching)",
+                                  choices=FULL_FLOW_REGIONS)
     flow_every: int = param(1, "compute the flow-matching terms (and their flow channels) every this many "
                                "iterations only: a cost knob of the accuracy-versus-time sweep",
                             check=_positive)

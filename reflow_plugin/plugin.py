@@ -98,7 +98,8 @@ class ReFlowPlugin(Plugin):
             cross_time_ratio=self.p.cross_time_ratio, ssim_weight=self.p.photo_ssim_weight,
             min_alpha=self.p.flow_min_alpha, blur_sigmas=tuple(self.p.flow_blur_sigmas),
             occlusion=self.is_enabled("occlusion"), occlusion_alpha1=self.p.occlusion_alpha1,
-            occlusion_alpha2=self.p.occlusion_alpha2)
+            occlusion_alpha2=self.p.occlusion_alpha2,
+            full_flow_dynamic_only=self.p.full_flow_region == "dynamic")
         self._blur_cache: dict[tuple[str, float], Tensor] = {}
         self._camera_motion: dict[tuple[int, int], float] = {}
         self._last = None
@@ -352,7 +353,7 @@ class ReFlowPlugin(Plugin):
         features: dict[str, Tensor] = {}
         if self._use_full(ctx) or self._use_ext(ctx):
             features[FLOW_KEY] = flow_features(ctx.views[view_index].projection, ctx.views[1 - view_index].projection)
-        if self._use_cam(ctx):
+        if self._use_cam(ctx) or (self._use_full(ctx) and self.config.full_flow_dynamic_only):
             features[DYNAMIC_KEY] = self._dynamic(ctx).to(ctx.views[view_index].colors.dtype).unsqueeze(1)
         return features
 

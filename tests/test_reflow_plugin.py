@@ -142,6 +142,26 @@ def test_flow_matching_gradients_reach_both_times_and_the_network(built):
     assert heads.weight.grad is not None and heads.weight.grad.abs().sum() > 0
 
 
+def test_full_flow_on_dynamic_pixels_only(built):
+    views, _ = _pair_views(built)
+    everywhere = pair_losses(views, MatchingConfig(), use_full=True, use_cam=True)
+    dynamic_only = pair_losses(views, MatchingConfig(full_flow_dynamic_only=True), use_full=True, use_cam=True)
+    for view, all_dir, dyn_dir in zip(views, everywhere.directions, dynamic_only.directions):
+        static = (view.extras["reflow_dynamic"][..., 0] / view.alpha[..., 0].clamp_min(1e-6)) < 0.5
+        assert dyn_dir.valid.sum() < all_dir.valid.sum() and dyn_dir.valid.any()
+        assert not (dyn_dir.valid & static).any()          # no static pixel left in the full-flow terms
+        assert torch.equal(dyn_dir.valid, dyn_dir.valid & all_dir.valid)
+    assert torch.equal(dynamic_only.losses["cf_mc"], everywhere.losses["cf_mc"])  # camera flow untouched
+    assert not torch.equal(dynamic_only.losses["ff_mc"], everywhere.losses["ff_mc"])
+    plugin = ReFlowPlugin({"ReFlowParams": ReFlowParams(full_flow_region="dynamic")},
+                          enabled=frozenset({"separation", "full_flow"}))
+    plugin.scene_depth = 1.0
+    ctx = built.ctx
+    ctx.stage, ctx.iteration = "fine", 2
+    assert plugin.config.full_flow_dynamic_only
+    assert set(plugin.extra_features(ctx, 0)) == {"reflow_flow", "reflow_dynamic"}  # the share is rendered
+
+
 def test_skips(built):
     plugin = built.hooks.plugins[0]
     ctx = built.ctx
