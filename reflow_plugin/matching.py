@@ -8,7 +8,8 @@ For each direction (a -> b and b -> a) of the pair:
 
 on the pixels where the flow is valid and lands inside image b (and, with the `occlusion`
 component, passes the forward-backward test of the pair's two full flows; with
-`full_flow_dynamic_only`, a diagnostic of ours, L_mc and L_cr only on dynamic pixels). Static pixels: the
+`full_flow_dynamic_only`, a diagnostic of ours, L_mc and L_cr only on dynamic pixels, each pixel
+weighted as in the loss over all pixels). Static pixels: the
 rendered dynamic-ness channel (1 for dynamic Gaussians) below 0.5 of the pixel's opacity.
 Directions are averaged; the returned terms are already weighted:
 
@@ -84,17 +85,22 @@ class _Terms:
         self.preds: list[Tensor] = []
         self.targets: list[Tensor] = []
         self.masks: list[Tensor] = []
+        self.weights: list[Tensor | float] = []
 
-    def add(self, name: str, pred: Tensor, target: Tensor, mask: Tensor) -> None:
+    def add(self, name: str, pred: Tensor, target: Tensor, mask: Tensor, weight: Tensor | float = 1.0) -> None:
+        """One term: the masked photometric loss of pred vs target, times `weight`."""
         self.names.append(name)
         self.preds.append(pred)
         self.targets.append(target)
         self.masks.append(mask)
+        self.weights.append(weight)
 
     def means(self, ssim_weight: float) -> dict[str, Tensor]:
         """{name: mean of its terms}."""
         values = photometric_losses(torch.stack(self.preds), torch.stack(self.targets), torch.stack(self.masks),
                                     ssim_weight)
+        values = values * torch.stack([torch.as_tensor(w, dtype=values.dtype, device=values.device)
+                                       for w in self.weights])
         out: dict[str, Tensor] = {}
         for name in dict.fromkeys(self.names):
             out[name] = values[[i for i, n in enumerate(self.names) if n == name]].mean()
@@ -133,14 +139,18 @@ def pair_losses(views: list[ViewRender], config: MatchingConfig, use_full: bool,
             mask = valid & inside
             if config.occlusion:
                 mask = mask & occlusion_mask(flow, full_flows[1 - k][0], config.occlusion_alpha1, config.occlusion_alpha2)
+            weight: Tensor | float = 1.0
             if config.full_flow_dynamic_only:
-                mask = mask & ~_static_pixels(a)
-            terms.add("mc", warped[..., :3], gt_a, mask)
-            terms.add("cr", warped[..., 3:], gt_a, mask)
+                # same per-pixel weight as over all pixels: the mean over the dynamic pixels times their share
+                dynamic = mask & ~_static_pixels(a)
+                weight = dynamic.sum().float() / mask.sum().clamp_min(1).float()
+                mask = dynamic
+            terms.add("mc", warped[..., :3], gt_a, mask, weight)
+            terms.add("cr", warped[..., 3:], gt_a, mask, weight)
             if blurred is not None:
                 for sigma in config.blur_sigmas:
                     blur_b, blur_a = blurred(k, sigma)
-                    terms.add("mc", backward_warp(blur_b, flow)[0], blur_a, mask)
+                    terms.add("mc", backward_warp(blur_b, flow)[0], blur_a, mask, weight)
             direction.flow, direction.valid, direction.warped = flow, mask, warped[..., :3]
             result.metrics[f"flow_valid_{k}"] = float(mask.float().mean())
         if use_cam:

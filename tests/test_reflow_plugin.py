@@ -152,6 +152,15 @@ def test_full_flow_on_dynamic_pixels_only(built):
         assert not (dyn_dir.valid & static).any()          # no static pixel left in the full-flow terms
         assert torch.equal(dyn_dir.valid, dyn_dir.valid & all_dir.valid)
     assert torch.equal(dynamic_only.losses["cf_mc"], everywhere.losses["cf_mc"])  # camera flow untouched
+    # each dynamic pixel keeps the weight it has in the loss over all pixels: sum over dynamic / count of all
+    l1_all = pair_losses(views, MatchingConfig(ssim_weight=0.0), use_full=True, use_cam=False)
+    l1_dyn = pair_losses(views, MatchingConfig(ssim_weight=0.0, full_flow_dynamic_only=True), use_full=True,
+                         use_cam=False)
+    expected = []
+    for k, (all_dir, dyn_dir) in enumerate(zip(l1_all.directions, l1_dyn.directions)):
+        error = (dyn_dir.warped - views[k].camera.image).abs().sum(-1)
+        expected.append(error[dyn_dir.valid].sum() / (3 * all_dir.valid.sum()))
+    assert float(l1_dyn.losses["ff_mc"]) == pytest.approx(5.0 * float(torch.stack(expected).mean()), rel=1e-5)
     assert not torch.equal(dynamic_only.losses["ff_mc"], everywhere.losses["ff_mc"])
     plugin = ReFlowPlugin({"ReFlowParams": ReFlowParams(full_flow_region="dynamic")},
                           enabled=frozenset({"separation", "full_flow"}))
