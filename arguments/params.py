@@ -115,6 +115,10 @@ class PipelineParams:
                          choices=BACKENDS)
     device: str = param("auto", "compute device: auto (cuda when available), cpu, cuda, cuda:N",
                         ours=True, check=_check_device)
+    clamp_time: bool = param(True, "deform at most to the training views' first and last time: a "
+                                   "test or video view outside that span is rendered at the nearest "
+                                   "trained time (the field was never fitted there); --no-clamp_time "
+                                   "extrapolates", ours=True)
 
 
 @dataclass

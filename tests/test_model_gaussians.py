@@ -100,6 +100,27 @@ def test_deform_coarse_is_canonical_and_fine_moves():
         model.deform(0.1, "medium")
 
 
+def test_time_span_clamps_deform_times():
+    model = make_model()
+    with torch.no_grad():  # let the time planes matter
+        for level in model.deformation.deformation_net.grid.grids:
+            for plane in level:
+                plane.uniform_(0.5, 1.5)
+    free_at_zero = model.deform(0.0, "fine").means
+    model.set_time_span((0.1, 0.8))
+    torch.testing.assert_close(model.deform(0.0, "fine").means, model.deform(0.1, "fine").means)
+    torch.testing.assert_close(model.deform(torch.tensor(0.95), "fine").means, model.deform(0.8, "fine").means)
+    assert not torch.allclose(model.deform(0.0, "fine").means, free_at_zero)  # clamping changed the state
+    times = torch.tensor([0.0, 0.5] * 20)  # per-Gaussian times are clamped one by one
+    expected = torch.where((times == 0.0)[:, None], model.deform(0.1, "fine").means, model.deform(0.5, "fine").means)
+    torch.testing.assert_close(model.deform(times, "fine").means, expected)
+    model.set_time_span(None)
+    torch.testing.assert_close(model.deform(0.0, "fine").means, free_at_zero)
+    for bad in ((0.5, 0.2), (float("nan"), 1.0)):
+        with pytest.raises(ValueError, match="set_time_span"):
+            model.set_time_span(bad)
+
+
 def test_deform_passes_registered_buffers_to_the_module():
     seen = {}
 

@@ -276,3 +276,21 @@ def test_adam_falls_back_where_torch_has_no_fused_kernel(monkeypatch):
     assert not optimizer.defaults.get("fused") and optimizer.defaults["eps"] == 1e-15
     monkeypatch.setattr(gaussian_model.torch.optim, "Adam", real)
     assert gaussian_model._adam([{"params": [p], "lr": 0.1, "name": "xyz"}], fused=True).defaults["fused"]
+
+
+def test_times_outside_the_training_span_render_at_the_nearest_trained_time(tiny_scene, tmp_path, caplog):
+    trainer = build_trainer(base_argv(tiny_scene, tmp_path / "span", 1, 1))
+    first = min(trainer.train_cameras, key=lambda c: c.time)
+    early = trainer.test_cameras[0]
+    early.time = first.time / 2  # a held-out view before the first training frame
+    with caplog.at_level("WARNING", logger="baselines.fourdgs.trainer"):
+        trainer.build()
+    model = trainer.ctx.model
+    assert model.time_span == (first.time, max(c.time for c in trainer.train_cameras))
+    assert early.image_name in caplog.text and "outside the training views' time span" in caplog.text
+    assert first.time > 0, "the tiny scene must start its training frames after t = 0"
+    torch.testing.assert_close(model.deform(early.time, "fine").means, model.deform(first.time, "fine").means)
+
+    free = build_trainer(base_argv(tiny_scene, tmp_path / "free", 1, 1, "--no-clamp_time"))
+    free.build()
+    assert free.ctx.model.time_span is None

@@ -10,6 +10,9 @@ opacity reset and ``capture()`` order are 4DGS's. Additions for plugins:
   optimizer group (named after them) handled like the built-in ones.
 - ``freeze`` / ``unfreeze`` optimizer groups by name: frozen parameters get no gradient, hence
   no Adam update at all (not even from momentum).
+- ``set_time_span(lo, hi)``: ``deform`` clamps its times into [lo, hi] (the trainer sets the
+  training views' span: outside it the deformation field was never fitted, and extrapolating it
+  can blow Gaussians up; README, "Times outside the training span").
 
 Device: everything follows the point cloud given to ``create_from_pcd`` (or the restored
 tensors); nothing is hard-coded.
@@ -131,6 +134,7 @@ class GaussianModel:
         self._rotation = nn.Parameter(torch.empty(0, 4))
         self._opacity = nn.Parameter(torch.empty(0, 1))
         self._deformation_table = torch.empty(0, dtype=torch.bool)
+        self.time_span: tuple[float, float] | None = None  # deform clamps times into it when set
         self._deformation_accum = torch.empty(0, 3)
         self.max_radii2D = torch.empty(0)
         self.xyz_gradient_accum = torch.empty(0, 1)
@@ -484,16 +488,32 @@ class GaussianModel:
         """The stored (canonical, pre-activation) Gaussians."""
         return GaussianState(self._xyz, self._scaling, self._rotation, self._opacity, self.get_features)
 
+    def set_time_span(self, span: tuple[float, float] | None) -> None:
+        """Times ``deform`` may use: clamped into [lo, hi]; None = any time (extrapolate)."""
+        if span is not None:
+            lo, hi = float(span[0]), float(span[1])
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+                raise ValueError(f"set_time_span: need finite lo <= hi, got {span}")
+            span = (lo, hi)
+        self.time_span = span
+
     def _times(self, time: float | Tensor) -> Tensor:
+        """[N, 1] per-Gaussian times, clamped into ``time_span`` when one is set."""
         count = self.num_gaussians
         if not isinstance(time, Tensor):
-            return torch.full((count, 1), float(time), device=self.device, dtype=self._xyz.dtype)
-        time = time.to(self.device, self._xyz.dtype)
-        if time.numel() == 1:
-            return time.reshape(1, 1).expand(count, 1)
-        if time.shape in ((count,), (count, 1)):
-            return time.reshape(count, 1)
-        raise ValueError(f"deform: time must be a scalar, [N] or [N, 1] with N={count}, got {list(time.shape)}")
+            time = torch.full((count, 1), float(time), device=self.device, dtype=self._xyz.dtype)
+        else:
+            time = time.to(self.device, self._xyz.dtype)
+            if time.numel() == 1:
+                time = time.reshape(1, 1).expand(count, 1)
+            elif time.shape in ((count,), (count, 1)):
+                time = time.reshape(count, 1)
+            else:
+                raise ValueError(f"deform: time must be a scalar, [N] or [N, 1] with N={count}, "
+                                 f"got {list(time.shape)}")
+        if self.time_span is not None:
+            time = time.clamp(self.time_span[0], self.time_span[1])
+        return time
 
     def deformation_inputs(self) -> Mapping[str, Tensor]:
         """What the deformation module receives besides the state and times: the registered

@@ -137,8 +137,25 @@ class Trainer:
             model = GaussianModel(self.args.model.sh_degree, self.hidden)
         model.create_from_pcd(ctx.point_cloud.points, ctx.point_cloud.colors, self.cameras_extent, device=self.device)
         ctx.model = model
+        self._set_time_span(model)
         self.hooks.call("on_model_created", ctx)
         self.run_log.event("model_created", num_gaussians=model.num_gaussians, point_cloud_source=ctx.point_cloud_source)
+
+    def _set_time_span(self, model: GaussianModel) -> None:
+        """Clamp the model's times to the training views' span (`--clamp_time`), saying which
+        test views lie outside it: there the deformation is held at the nearest trained time."""
+        if not self.pipe.clamp_time or not self.train_cameras:
+            model.set_time_span(None)
+            return
+        times = [c.time for c in self.train_cameras]
+        lo, hi = min(times), max(times)
+        model.set_time_span((lo, hi))
+        outside = [c.image_name for c in self.test_cameras if not lo <= c.time <= hi]
+        if outside:
+            log.warning("%d test view(s) lie outside the training views' time span [%.4g, %.4g] (%s): "
+                        "rendered at the nearest trained time (--no-clamp_time extrapolates the "
+                        "deformation instead)", len(outside), lo, hi, ", ".join(outside[:5]))
+        self.run_log.event("time_span", lo=lo, hi=hi, test_views_outside=outside)
 
     # ------------------------------------------------------------------ main loop
     def train(self) -> TrainResult:
@@ -406,6 +423,7 @@ class Trainer:
         load_point_cloud_dir(folder, model, device=self.device)
         model.spatial_lr_scale = self.cameras_extent
         ctx.model, ctx.point_cloud_source = model, f"checkpoint {folder}"
+        self._set_time_span(model)
         self.hooks.call("on_load", ctx, folder)
         self.run_log.event("loaded", path=str(folder), num_gaussians=model.num_gaussians)
 
