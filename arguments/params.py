@@ -115,10 +115,11 @@ class PipelineParams:
                          choices=BACKENDS)
     device: str = param("auto", "compute device: auto (cuda when available), cpu, cuda, cuda:N",
                         ours=True, check=_check_device)
-    clamp_time: bool = param(True, "deform at most to the training views' first and last time: a "
-                                   "test or video view outside that span is rendered at the nearest "
-                                   "trained time (the field was never fitted there); --no-clamp_time "
-                                   "extrapolates", ours=True)
+    time_outside: str = param("linear", "views at times outside the training views' span "
+                              "(e.g. a held-out first frame): linear (the state at the nearest "
+                              "trained time, centres moved on at their velocity there), hold (that "
+                              "state as it is) or extrapolate (4DGS: evaluate the deformation there)",
+                              ours=True, choices=("extrapolate", "hold", "linear"))
 
 
 @dataclass

@@ -7,7 +7,8 @@ For each direction (a -> b and b -> a) of the pair:
     L_cr   = photo(render_b warped by F, I_a)          L^cam_cr = photo(render_b warped by F^cam, I_a) on static pixels
 
 on the pixels where the flow is valid and lands inside image b (and, with the `occlusion`
-component, passes the forward-backward test of the pair's two full flows; with
+component, passes the forward-backward test of the pair's two full flows; with `cam_occlusion`,
+the camera-flow terms pass the same test on the pair's two camera flows; with
 `full_flow_dynamic_only`, a diagnostic of ours, L_mc and L_cr only on dynamic pixels, each pixel
 weighted as in the loss over all pixels). Static pixels: the
 rendered dynamic-ness channel (1 for dynamic Gaussians) below 0.5 of the pixel's opacity.
@@ -53,6 +54,7 @@ class MatchingConfig:
     occlusion_alpha1: float = 0.01
     occlusion_alpha2: float = 0.5
     full_flow_dynamic_only: bool = False  # full flow terms on dynamic pixels only (needs extras[DYNAMIC_KEY])
+    cam_occlusion: bool = False  # forward-backward test on the two camera flows
 
     @property
     def lambda_cr(self) -> float:
@@ -128,6 +130,12 @@ def pair_losses(views: list[ViewRender], config: MatchingConfig, use_full: bool,
     if use_full:
         for k in range(2):
             full_flows.append(full_flow(views[k].extras[FLOW_KEY], views[k].alpha, config.min_alpha))
+    camera_flows = []
+    if use_cam:
+        for k in range(2):
+            a, b = views[k], views[1 - k]
+            camera_flows.append(camera_flow(a.depth, a.alpha, a.camera.K, a.camera.viewmat, b.camera.K,
+                                            b.camera.viewmat, config.min_alpha))
     for k in range(2):
         a, b = views[k], views[1 - k]
         gt_a = a.camera.image
@@ -154,11 +162,13 @@ def pair_losses(views: list[ViewRender], config: MatchingConfig, use_full: bool,
             direction.flow, direction.valid, direction.warped = flow, mask, warped[..., :3]
             result.metrics[f"flow_valid_{k}"] = float(mask.float().mean())
         if use_cam:
-            flow_c, valid_c = camera_flow(a.depth, a.alpha, a.camera.K, a.camera.viewmat, b.camera.K,
-                                          b.camera.viewmat, config.min_alpha)
+            flow_c, valid_c = camera_flows[k]
             static = _static_pixels(a)
             warped_c, inside = backward_warp(sources, flow_c)
             mask = valid_c & inside & static
+            if config.cam_occlusion:
+                mask = mask & occlusion_mask(flow_c, camera_flows[1 - k][0], config.occlusion_alpha1,
+                                             config.occlusion_alpha2)
             terms.add("cam_mc", warped_c[..., :3], gt_a, mask)
             terms.add("cam_cr", warped_c[..., 3:], gt_a, mask)
             direction.cam_flow, direction.static = flow_c, mask

@@ -10,6 +10,7 @@ Components (``--disable`` / ``--enable``, the paper's ablation switches):
     full_flow   full flow matching (L_mc + L_cr on the pair's rendered full flows)
     cam_flow    camera flow matching on static pixels
     occlusion   (off by default) forward-backward occlusion masks for full flow matching
+    cam_occlusion (off by default) the same test on the pair's two camera flows
     ext_flow    (off by default) L1 between the rendered full flow and cached DIS optical flow: the
                 paper's "Ours (External Flow)" row is `--enable ext_flow --disable full_flow`
 
@@ -77,8 +78,8 @@ def canonical_available() -> tuple[bool, str]:
 
 class ReFlowPlugin(Plugin):
     name = "reflow"
-    components = ("comp_init", "separation", "full_flow", "cam_flow", "occlusion", "ext_flow")
-    default_disabled = ("occlusion", "ext_flow")
+    components = ("comp_init", "separation", "full_flow", "cam_flow", "occlusion", "cam_occlusion", "ext_flow")
+    default_disabled = ("occlusion", "cam_occlusion", "ext_flow")
     param_groups = {"ReFlowParams": ReFlowParams}
 
     def __init__(self, params: Mapping[str, Any] | None = None, enabled: frozenset[str] | None = None) -> None:
@@ -98,7 +99,7 @@ class ReFlowPlugin(Plugin):
             cross_time_ratio=self.p.cross_time_ratio, ssim_weight=self.p.photo_ssim_weight,
             min_alpha=self.p.flow_min_alpha, blur_sigmas=tuple(self.p.flow_blur_sigmas),
             occlusion=self.is_enabled("occlusion"), occlusion_alpha1=self.p.occlusion_alpha1,
-            occlusion_alpha2=self.p.occlusion_alpha2,
+            occlusion_alpha2=self.p.occlusion_alpha2, cam_occlusion=self.is_enabled("cam_occlusion"),
             full_flow_dynamic_only=self.p.full_flow_region == "dynamic")
         self._blur_cache: dict[tuple[str, float], Tensor] = {}
         self._camera_motion: dict[tuple[int, int], float] = {}

@@ -100,22 +100,30 @@ def test_deform_coarse_is_canonical_and_fine_moves():
         model.deform(0.1, "medium")
 
 
-def test_time_span_clamps_deform_times():
+def test_times_outside_the_span_extrapolate_hold_or_move_on_linearly():
     model = make_model()
     with torch.no_grad():  # let the time planes matter
         for level in model.deformation.deformation_net.grid.grids:
             for plane in level:
                 plane.uniform_(0.5, 1.5)
-    free_at_zero = model.deform(0.0, "fine").means
-    model.set_time_span((0.1, 0.8))
-    torch.testing.assert_close(model.deform(0.0, "fine").means, model.deform(0.1, "fine").means)
-    torch.testing.assert_close(model.deform(torch.tensor(0.95), "fine").means, model.deform(0.8, "fine").means)
-    assert not torch.allclose(model.deform(0.0, "fine").means, free_at_zero)  # clamping changed the state
-    times = torch.tensor([0.0, 0.5] * 20)  # per-Gaussian times are clamped one by one
-    expected = torch.where((times == 0.0)[:, None], model.deform(0.1, "fine").means, model.deform(0.5, "fine").means)
-    torch.testing.assert_close(model.deform(times, "fine").means, expected)
-    model.set_time_span(None)
-    torch.testing.assert_close(model.deform(0.0, "fine").means, free_at_zero)
+    at = {t: model.deform(t, "fine") for t in (0.0, 0.1, 0.2, 0.8, 0.95)}  # no span: the field as it is
+    model.set_time_span((0.1, 0.8), "extrapolate")
+    torch.testing.assert_close(model.deform(0.0, "fine").means, at[0.0].means)
+    model.set_time_span((0.1, 0.8), "hold")
+    torch.testing.assert_close(model.deform(0.0, "fine").means, at[0.1].means)
+    torch.testing.assert_close(model.deform(torch.tensor(0.95), "fine").means, at[0.8].means)
+    torch.testing.assert_close(model.deform(0.5, "fine").means, model.deform(torch.tensor(0.5), "fine").means)
+    assert not torch.allclose(at[0.0].means, at[0.1].means)  # holding changes something here
+    model.set_time_span((0.1, 0.8), "linear")
+    linear = model.deform(0.0, "fine")  # 0.1 before the span: mirror time 0.2
+    torch.testing.assert_close(linear.means, 2 * at[0.1].means - at[0.2].means)
+    torch.testing.assert_close(linear.log_scales, at[0.1].log_scales)  # the shape is held
+    times = torch.tensor([0.0, 0.5] * 20)  # per-Gaussian times, one by one
+    mixed = model.deform(times, "fine").means
+    torch.testing.assert_close(mixed[0::2], linear.means[0::2])
+    torch.testing.assert_close(mixed[1::2], model.deform(0.5, "fine").means[1::2])
+    with pytest.raises(ValueError, match="mode"):
+        model.set_time_span((0.1, 0.8), "clamp")
     for bad in ((0.5, 0.2), (float("nan"), 1.0)):
         with pytest.raises(ValueError, match="set_time_span"):
             model.set_time_span(bad)

@@ -171,6 +171,24 @@ def test_full_flow_on_dynamic_pixels_only(built):
     assert set(plugin.extra_features(ctx, 0)) == {"reflow_flow", "reflow_dynamic"}  # the share is rendered
 
 
+def test_camera_flow_occlusion_test_drops_inconsistent_pixels(built):
+    from reflow_plugin.warp import occlusion_mask
+
+    views, _ = _pair_views(built)
+    h, w = views[1].depth.shape[:2]  # an "occluder" in view b: a block much nearer than the scene
+    views[1].depth = views[1].depth.clone()
+    views[1].depth[h // 4: 3 * h // 4, w // 4: 3 * w // 4] *= 0.3
+    plain = pair_losses(views, MatchingConfig(), use_full=False, use_cam=True)
+    tested = pair_losses(views, MatchingConfig(cam_occlusion=True), use_full=False, use_cam=True)
+    dropped = 0
+    for k, (p, t) in enumerate(zip(plain.directions, tested.directions)):
+        consistent = occlusion_mask(p.cam_flow, plain.directions[1 - k].cam_flow, 0.01, 0.5)
+        assert torch.equal(t.static, p.static & consistent)  # the plain mask, minus the inconsistent pixels
+        dropped += int((p.static & ~consistent).sum())
+    assert dropped > 0, "the pair's views must disagree somewhere for this test to check anything"
+    assert float(tested.losses["cf_mc"]) != float(plain.losses["cf_mc"])
+
+
 def test_skips(built):
     plugin = built.hooks.plugins[0]
     ctx = built.ctx

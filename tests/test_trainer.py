@@ -278,19 +278,35 @@ def test_adam_falls_back_where_torch_has_no_fused_kernel(monkeypatch):
     assert gaussian_model._adam([{"params": [p], "lr": 0.1, "name": "xyz"}], fused=True).defaults["fused"]
 
 
-def test_times_outside_the_training_span_render_at_the_nearest_trained_time(tiny_scene, tmp_path, caplog):
-    trainer = build_trainer(base_argv(tiny_scene, tmp_path / "span", 1, 1))
+def test_trainer_sets_the_training_time_span_and_warns_about_views_outside(tiny_scene, tmp_path, caplog):
+    trainer = build_trainer(base_argv(tiny_scene, tmp_path / "span", 1, 1, "--time_outside", "hold"))
     first = min(trainer.train_cameras, key=lambda c: c.time)
+    assert first.time > 0, "the tiny scene must start its training frames after t = 0"
     early = trainer.test_cameras[0]
     early.time = first.time / 2  # a held-out view before the first training frame
     with caplog.at_level("WARNING", logger="baselines.fourdgs.trainer"):
         trainer.build()
     model = trainer.ctx.model
     assert model.time_span == (first.time, max(c.time for c in trainer.train_cameras))
+    assert model.time_outside == "hold"
     assert early.image_name in caplog.text and "outside the training views' time span" in caplog.text
-    assert first.time > 0, "the tiny scene must start its training frames after t = 0"
-    torch.testing.assert_close(model.deform(early.time, "fine").means, model.deform(first.time, "fine").means)
+    default = build_trainer(base_argv(tiny_scene, tmp_path / "default", 1, 1))
+    default.build()
+    assert default.ctx.model.time_outside == "linear"
 
-    free = build_trainer(base_argv(tiny_scene, tmp_path / "free", 1, 1, "--no-clamp_time"))
-    free.build()
-    assert free.ctx.model.time_span is None
+
+def test_time_outside_script_rerenders_each_mode(trained_run, capsys):
+    sys.path.insert(0, str(REPO_ROOT / "scripts"))
+    try:
+        import time_outside
+    finally:
+        sys.path.remove(str(REPO_ROOT / "scripts"))
+    out, _ = trained_run
+    row = time_outside.psnr_by_mode(out)
+    assert row["outside"], "the tiny scene holds out a view before its first training frame"
+    assert {m: row[m]["outside"] is not None for m in ("extrapolate", "hold", "linear")} == \
+        {"extrapolate": True, "hold": True, "linear": True}
+    assert row["extrapolate"]["outside"] != row["hold"]["outside"]  # the mode reached the renders
+    assert time_outside.main([str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "extrapolate mean / outside" in printed and "mean of 1 runs" in printed

@@ -10,9 +10,10 @@ opacity reset and ``capture()`` order are 4DGS's. Additions for plugins:
   optimizer group (named after them) handled like the built-in ones.
 - ``freeze`` / ``unfreeze`` optimizer groups by name: frozen parameters get no gradient, hence
   no Adam update at all (not even from momentum).
-- ``set_time_span(lo, hi)``: ``deform`` clamps its times into [lo, hi] (the trainer sets the
-  training views' span: outside it the deformation field was never fitted, and extrapolating it
-  can blow Gaussians up; README, "Times outside the training span").
+- ``set_time_span((lo, hi), mode)``: what ``deform`` does at times outside [lo, hi] (the trainer
+  sets the training views' span and ``--time_outside``): "extrapolate" (4DGS), "hold" (clamp the
+  time) or "linear" (hold, with centres moved on at their velocity at the span's edge). Outside
+  the span the field was never fitted; README, "Times outside the training span".
 
 Device: everything follows the point cloud given to ``create_from_pcd`` (or the restored
 tensors); nothing is hard-coded.
@@ -38,6 +39,7 @@ from baselines.fourdgs.optimizer_state import check_state_by_group_name, load_st
 from baselines.fourdgs.state import GaussianState
 
 SH_C0 = 0.28209479177387814
+TIME_OUTSIDE_MODES = ("extrapolate", "hold", "linear")  # see GaussianModel.set_time_span
 # Per-Gaussian optimizer groups -> attribute, in 4DGS's group order around the module groups.
 ROW_GROUPS: dict[str, str] = {
     "xyz": "_xyz",
@@ -134,7 +136,8 @@ class GaussianModel:
         self._rotation = nn.Parameter(torch.empty(0, 4))
         self._opacity = nn.Parameter(torch.empty(0, 1))
         self._deformation_table = torch.empty(0, dtype=torch.bool)
-        self.time_span: tuple[float, float] | None = None  # deform clamps times into it when set
+        self.time_span: tuple[float, float] | None = None  # see set_time_span
+        self.time_outside = "extrapolate"
         self._deformation_accum = torch.empty(0, 3)
         self.max_radii2D = torch.empty(0)
         self.xyz_gradient_accum = torch.empty(0, 1)
@@ -488,32 +491,36 @@ class GaussianModel:
         """The stored (canonical, pre-activation) Gaussians."""
         return GaussianState(self._xyz, self._scaling, self._rotation, self._opacity, self.get_features)
 
-    def set_time_span(self, span: tuple[float, float] | None) -> None:
-        """Times ``deform`` may use: clamped into [lo, hi]; None = any time (extrapolate)."""
+    def set_time_span(self, span: tuple[float, float] | None, mode: str = "linear") -> None:
+        """The times the deformation was fitted on, and what ``deform`` does outside them.
+
+        Args:
+            span: (lo, hi) or None (no span: every time is evaluated as it is).
+            mode: "extrapolate" (evaluate the field at the time as given), "hold" (at the time
+                clamped into the span) or "linear" (as "hold", then each centre moves on by its
+                finite-difference velocity at the edge: x(t) = 2 x(t_c) - x(2 t_c - t), with the
+                mirrored time clamped into the span; scales, rotations, opacities, colours held).
+        """
+        if mode not in TIME_OUTSIDE_MODES:
+            raise ValueError(f"set_time_span: mode must be one of {TIME_OUTSIDE_MODES}, got {mode!r}")
         if span is not None:
             lo, hi = float(span[0]), float(span[1])
             if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
                 raise ValueError(f"set_time_span: need finite lo <= hi, got {span}")
             span = (lo, hi)
-        self.time_span = span
+        self.time_span, self.time_outside = span, mode
 
     def _times(self, time: float | Tensor) -> Tensor:
-        """[N, 1] per-Gaussian times, clamped into ``time_span`` when one is set."""
+        """[N, 1] per-Gaussian times from a scalar, [N] or [N, 1] time."""
         count = self.num_gaussians
         if not isinstance(time, Tensor):
-            time = torch.full((count, 1), float(time), device=self.device, dtype=self._xyz.dtype)
-        else:
-            time = time.to(self.device, self._xyz.dtype)
-            if time.numel() == 1:
-                time = time.reshape(1, 1).expand(count, 1)
-            elif time.shape in ((count,), (count, 1)):
-                time = time.reshape(count, 1)
-            else:
-                raise ValueError(f"deform: time must be a scalar, [N] or [N, 1] with N={count}, "
-                                 f"got {list(time.shape)}")
-        if self.time_span is not None:
-            time = time.clamp(self.time_span[0], self.time_span[1])
-        return time
+            return torch.full((count, 1), float(time), device=self.device, dtype=self._xyz.dtype)
+        time = time.to(self.device, self._xyz.dtype)
+        if time.numel() == 1:
+            return time.reshape(1, 1).expand(count, 1)
+        if time.shape in ((count,), (count, 1)):
+            return time.reshape(count, 1)
+        raise ValueError(f"deform: time must be a scalar, [N] or [N, 1] with N={count}, got {list(time.shape)}")
 
     def deformation_inputs(self) -> Mapping[str, Tensor]:
         """What the deformation module receives besides the state and times: the registered
@@ -529,7 +536,17 @@ class GaussianModel:
         state = self.canonical_state()
         if stage == "coarse":
             return state
-        return self._deformation(state, self._times(time), self.deformation_inputs())
+        times, inputs = self._times(time), self.deformation_inputs()
+        if self.time_span is None or self.time_outside == "extrapolate":
+            return self._deformation(state, times, inputs)
+        held = times.clamp(self.time_span[0], self.time_span[1])
+        out = self._deformation(state, held, inputs)
+        if self.time_outside == "linear" and bool((held != times).any()):
+            # centres continue at the edge velocity; the mirrored time stays inside the span
+            mirrored = (2.0 * held - times).clamp(self.time_span[0], self.time_span[1])
+            before = self._deformation(state, mirrored, inputs).means
+            out = out.replace(means=2.0 * out.means - before)
+        return out
 
     @property
     def deformation_table(self) -> Tensor:

@@ -142,20 +142,20 @@ class Trainer:
         self.run_log.event("model_created", num_gaussians=model.num_gaussians, point_cloud_source=ctx.point_cloud_source)
 
     def _set_time_span(self, model: GaussianModel) -> None:
-        """Clamp the model's times to the training views' span (`--clamp_time`), saying which
-        test views lie outside it: there the deformation is held at the nearest trained time."""
-        if not self.pipe.clamp_time or not self.train_cameras:
-            model.set_time_span(None)
+        """Give the model the training views' time span and `--time_outside`; warn about the test
+        views outside that span (the deformation was never fitted there)."""
+        if not self.train_cameras:
             return
         times = [c.time for c in self.train_cameras]
         lo, hi = min(times), max(times)
-        model.set_time_span((lo, hi))
+        mode = self.pipe.time_outside
+        model.set_time_span((lo, hi), mode)
         outside = [c.image_name for c in self.test_cameras if not lo <= c.time <= hi]
         if outside:
             log.warning("%d test view(s) lie outside the training views' time span [%.4g, %.4g] (%s): "
-                        "rendered at the nearest trained time (--no-clamp_time extrapolates the "
-                        "deformation instead)", len(outside), lo, hi, ", ".join(outside[:5]))
-        self.run_log.event("time_span", lo=lo, hi=hi, test_views_outside=outside)
+                        "--time_outside %s (extrapolate|hold|linear)", len(outside), lo, hi,
+                        ", ".join(outside[:5]), mode)
+        self.run_log.event("time_span", lo=lo, hi=hi, mode=mode, test_views_outside=outside)
 
     # ------------------------------------------------------------------ main loop
     def train(self) -> TrainResult:
