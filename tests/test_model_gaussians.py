@@ -82,12 +82,18 @@ def test_expon_schedule_delay_and_errors():
         get_expon_lr_func(1e-3, 0.0)
 
 
-def test_deform_coarse_is_canonical_and_fine_moves():
+def model_with_time_dependent_planes() -> GaussianModel:
+    """make_model() with its HexPlane cells drawn so that time changes the deformation."""
     model = make_model()
-    with torch.no_grad():  # let the time planes matter
+    with torch.no_grad():
         for level in model.deformation.deformation_net.grid.grids:
             for plane in level:
                 plane.uniform_(0.5, 1.5)
+    return model
+
+
+def test_deform_coarse_is_canonical_and_fine_moves():
+    model = model_with_time_dependent_planes()
     coarse = model.deform(0.5, "coarse")
     assert coarse.means is model._xyz and coarse.log_scales is model._scaling
     assert coarse.shs.shape == (40, 16, 3)
@@ -101,11 +107,7 @@ def test_deform_coarse_is_canonical_and_fine_moves():
 
 
 def test_times_outside_the_span_extrapolate_hold_or_move_on_linearly():
-    model = make_model()
-    with torch.no_grad():  # let the time planes matter
-        for level in model.deformation.deformation_net.grid.grids:
-            for plane in level:
-                plane.uniform_(0.5, 1.5)
+    model = model_with_time_dependent_planes()
     at = {t: model.deform(t, "fine") for t in (0.0, 0.1, 0.2, 0.8, 0.95)}  # no span: the field as it is
     model.set_time_span((0.1, 0.8), "extrapolate")
     torch.testing.assert_close(model.deform(0.0, "fine").means, at[0.0].means)

@@ -537,7 +537,9 @@ class GaussianModel:
         if stage == "coarse":
             return state
         times, inputs = self._times(time), self.deformation_inputs()
-        if self.time_span is None or self.time_outside == "extrapolate":
+        span = self.time_span
+        inside = span is not None and not isinstance(time, Tensor) and span[0] <= time <= span[1]
+        if span is None or self.time_outside == "extrapolate" or inside:  # inside: no tensor check (hot path)
             return self._deformation(state, times, inputs)
         held = times.clamp(self.time_span[0], self.time_span[1])
         out = self._deformation(state, held, inputs)
