@@ -1,25 +1,33 @@
-"""Self-correction flow matching losses of one frame pair (paper section 3.3, DESIGN.md section 5).
+"""Self-correction flow matching losses (paper section 3.3, DESIGN.md section 5), per direction.
 
-For each direction (a -> b and b -> a) of the pair:
+A direction a -> b has a SOURCE view a (composited: its render, depth, alpha and flow channels
+towards b) and a TARGET frame b: its ground truth I_b always; its render (for L_cr) only when b
+was composited too (`pair_mode both`, the paper's pairwise batch); in `pair_mode partner` (ours)
+b is only deformed and projected, which is all the full flow needs. Per direction:
 
     full flow F   (from view a's flow channels)        camera flow F^cam (from view a's depth)
     L_mc   = photo(I_b warped by F, I_a)               L^cam_mc = photo(I_b warped by F^cam, I_a)   on static pixels
     L_cr   = photo(render_b warped by F, I_a)          L^cam_cr = photo(render_b warped by F^cam, I_a) on static pixels
+             (only with render_b)                                (only with render_b)
 
 on the pixels where the flow is valid and lands inside image b (and, with the `occlusion`
-component, passes the forward-backward test of the pair's two full flows; with `cam_occlusion`,
-the camera-flow terms pass the same test on the pair's two camera flows; with
+component, passes the forward-backward test against the reverse direction's full flow; with
+`cam_occlusion`, the camera-flow terms pass the same test on the two camera flows; with
 `full_flow_dynamic_only`, a diagnostic of ours, L_mc and L_cr only on dynamic pixels, each pixel
-weighted as in the loss over all pixels). Static pixels: the
-rendered dynamic-ness channel (1 for dynamic Gaussians) below 0.5 of the pixel's opacity.
-Directions are averaged; the returned terms are already weighted:
+weighted as in the loss over all pixels). Static pixels: the rendered dynamic-ness channel (1 for
+dynamic Gaussians) below 0.5 of the pixel's opacity; with `cam_target_static` (the paper's
+masking) the pixel must also land on a static pixel of b (b's rendered dynamic share, or b's
+motion mask when b was not composited). Directions are averaged; the returned terms are already
+weighted:
 
     ff_mc = lambda_ff * lambda_mc * L_mc        ff_cr = lambda_ff * lambda_cr * L_cr
     cf_mc = lambda_cf * lambda_mc * L^cam_mc    cf_cr = lambda_cf * lambda_cr * L^cam_cr
 
-with lambda_cr = cross_time_ratio * lambda_mc (paper: 0.1). `blur_sigmas` (ours, off by default)
-adds motion-consistency terms on blurred images, averaged with the full-resolution one: a
-photometric loss only "sees" motion within about a pixel of its sample, blur widens that range.
+with lambda_cr = cross_time_ratio * lambda_mc (paper: 0.1). `blur_sigmas` (ours) adds
+motion-consistency terms on blurred images, averaged with the full-resolution one: a photometric
+loss only "sees" motion within about a pixel of its sample, blur widens that range;
+`blur_dynamic_only` keeps those terms off static pixels (blur mixes a moving object's colours into
+the static pixels around it, where the two frames then disagree).
 """
 from __future__ import annotations
 
@@ -29,6 +37,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from baselines.data import Camera
 from baselines.fourdgs.hooks import ViewRender
 
 from .flow import camera_flow, full_flow
@@ -55,6 +64,8 @@ class MatchingConfig:
     occlusion_alpha2: float = 0.5
     full_flow_dynamic_only: bool = False  # full flow terms on dynamic pixels only (needs extras[DYNAMIC_KEY])
     cam_occlusion: bool = False  # forward-backward test on the two camera flows
+    cam_target_static: bool = False  # camera-flow terms only where the pixel lands on a static pixel of b
+    blur_dynamic_only: bool = False  # blurred L_mc terms only on dynamic pixels (needs extras[DYNAMIC_KEY])
 
     @property
     def lambda_cr(self) -> float:
@@ -109,44 +120,83 @@ class _Terms:
         return out
 
 
+@dataclass
+class FlowPair:
+    """One direction a -> b of flow matching.
+
+    Attributes:
+        source: view a, composited (extras[FLOW_KEY] for full flow, extras[DYNAMIC_KEY] for the
+            static mask of camera flow and the dynamic-only options).
+        target: camera b (its image is I_b).
+        target_render: [H, W, 3] render of b (L_cr terms), or None when b was not composited.
+        target_dynamic: [H, W] float dynamic share of b's pixels (the target-side static mask), or None.
+        reverse: index of the direction b -> a in the same list (occlusion tests), or None.
+    """
+
+    source: ViewRender
+    target: Camera
+    target_render: Tensor | None = None
+    target_dynamic: Tensor | None = None
+    reverse: int | None = None
+
+
 def _static_pixels(view: ViewRender) -> Tensor:
     """[H, W] bool: pixels whose rendered dynamic share (extras[DYNAMIC_KEY] / alpha) is below STATIC_BELOW."""
-    return (view.extras[DYNAMIC_KEY][..., 0] / view.alpha[..., 0].clamp_min(1e-6)) < STATIC_BELOW
+    return dynamic_share(view) < STATIC_BELOW
+
+
+def dynamic_share(view: ViewRender) -> Tensor:
+    """[H, W] rendered dynamic share of each pixel: extras[DYNAMIC_KEY] / alpha."""
+    return view.extras[DYNAMIC_KEY][..., 0] / view.alpha[..., 0].clamp_min(1e-6)
 
 
 def pair_losses(views: list[ViewRender], config: MatchingConfig, use_full: bool, use_cam: bool,
                 blurred: Callable[[int, float], tuple[Tensor, Tensor]] | None = None) -> PairResult:
-    """Flow matching losses of a 2-view batch (see the module docstring).
+    """Flow matching losses of a 2-view batch, both views composited (`pair_mode both`).
 
     Args:
         views: the pair's two composited views; with `use_full` each carries extras[FLOW_KEY]
-            ([H, W, 7] flow channels towards the other view), with `use_cam` or
-            `config.full_flow_dynamic_only` extras[DYNAMIC_KEY] ([H, W, 1]).
+            ([H, W, 7] flow channels towards the other view), with `use_cam` or the dynamic-only
+            options extras[DYNAMIC_KEY] ([H, W, 1]).
         blurred: (view index k, sigma) -> (blurred I_other, blurred I_k), for `blur_sigmas`.
+    """
+    pairs = []
+    for k in range(2):
+        b = views[1 - k]
+        target_dynamic = dynamic_share(b) if config.cam_target_static and use_cam else None
+        pairs.append(FlowPair(views[k], b.camera, b.image, target_dynamic, reverse=1 - k))
+    return flow_losses(pairs, config, [use_full] * 2, [use_cam] * 2, blurred)
+
+
+def flow_losses(pairs: list[FlowPair], config: MatchingConfig, use_full: list[bool], use_cam: list[bool],
+                blurred: Callable[[int, float], tuple[Tensor, Tensor]] | None = None) -> PairResult:
+    """Flow matching losses of the given directions (see the module docstring).
+
+    Args:
+        use_full, use_cam: per direction, whether its full-flow / camera-flow terms are computed.
+        blurred: (direction index k, sigma) -> (blurred I_b, blurred I_a), for `blur_sigmas`.
     """
     result = PairResult()
     terms = _Terms()
-    full_flows = []
-    if use_full:
-        for k in range(2):
-            full_flows.append(full_flow(views[k].extras[FLOW_KEY], views[k].alpha, config.min_alpha))
-    camera_flows = []
-    if use_cam:
-        for k in range(2):
-            a, b = views[k], views[1 - k]
-            camera_flows.append(camera_flow(a.depth, a.alpha, a.camera.K, a.camera.viewmat, b.camera.K,
-                                            b.camera.viewmat, config.min_alpha))
-    for k in range(2):
-        a, b = views[k], views[1 - k]
+    full_flows = [full_flow(p.source.extras[FLOW_KEY], p.source.alpha, config.min_alpha) if use_full[k] else None
+                  for k, p in enumerate(pairs)]
+    camera_flows = [camera_flow(p.source.depth, p.source.alpha, p.source.camera.K, p.source.camera.viewmat,
+                                p.target.K, p.target.viewmat, config.min_alpha) if use_cam[k] else None
+                    for k, p in enumerate(pairs)]
+    for k, pair in enumerate(pairs):
+        a = pair.source
         gt_a = a.camera.image
-        sources = torch.cat((b.camera.image, b.image), dim=-1)  # warp ground truth and render together
+        with_render = pair.target_render is not None
+        # warp ground truth and render together
+        sources = torch.cat((pair.target.image, pair.target_render), dim=-1) if with_render else pair.target.image
         direction = Direction()
-        if use_full:
+        if use_full[k]:
             flow, valid = full_flows[k]
             warped, inside = backward_warp(sources, flow)
             mask = valid & inside
-            if config.occlusion:
-                mask = mask & occlusion_mask(flow, full_flows[1 - k][0], config.occlusion_alpha1, config.occlusion_alpha2)
+            reverse = full_flows[pair.reverse] if pair.reverse is not None else None
+            if config.occlusion and reverse is not None:
+                mask = mask & occlusion_mask(flow, reverse[0], config.occlusion_alpha1, config.occlusion_alpha2)
             weight: Tensor | float = 1.0
             if config.full_flow_dynamic_only:
                 # same per-pixel weight as over all pixels: the mean over the dynamic pixels times their share
@@ -154,33 +204,39 @@ def pair_losses(views: list[ViewRender], config: MatchingConfig, use_full: bool,
                 weight = dynamic.sum().float() / mask.sum().clamp_min(1).float()
                 mask = dynamic
             terms.add("mc", warped[..., :3], gt_a, mask, weight)
-            terms.add("cr", warped[..., 3:], gt_a, mask, weight)
-            if blurred is not None:
+            if with_render:
+                terms.add("cr", warped[..., 3:], gt_a, mask, weight)
+            if blurred is not None and config.blur_sigmas:
+                blur_mask = mask & ~_static_pixels(a) if config.blur_dynamic_only else mask
                 for sigma in config.blur_sigmas:
                     blur_b, blur_a = blurred(k, sigma)
-                    terms.add("mc", backward_warp(blur_b, flow)[0], blur_a, mask, weight)
+                    terms.add("mc", backward_warp(blur_b, flow)[0], blur_a, blur_mask, weight)
             direction.flow, direction.valid, direction.warped = flow, mask, warped[..., :3]
             result.metrics[f"flow_valid_{k}"] = float(mask.float().mean())
-        if use_cam:
+        if use_cam[k]:
             flow_c, valid_c = camera_flows[k]
-            static = _static_pixels(a)
             warped_c, inside = backward_warp(sources, flow_c)
-            mask = valid_c & inside & static
-            if config.cam_occlusion:
-                mask = mask & occlusion_mask(flow_c, camera_flows[1 - k][0], config.occlusion_alpha1,
-                                             config.occlusion_alpha2)
+            mask = valid_c & inside & _static_pixels(a)
+            if pair.target_dynamic is not None:
+                with torch.no_grad():  # the target's dynamic share where each pixel lands
+                    landed = backward_warp(pair.target_dynamic.unsqueeze(-1).to(flow_c.dtype), flow_c)[0][..., 0]
+                mask = mask & (landed < STATIC_BELOW)
+            reverse = camera_flows[pair.reverse] if pair.reverse is not None else None
+            if config.cam_occlusion and reverse is not None:
+                mask = mask & occlusion_mask(flow_c, reverse[0], config.occlusion_alpha1, config.occlusion_alpha2)
             terms.add("cam_mc", warped_c[..., :3], gt_a, mask)
-            terms.add("cam_cr", warped_c[..., 3:], gt_a, mask)
+            if with_render:
+                terms.add("cam_cr", warped_c[..., 3:], gt_a, mask)
             direction.cam_flow, direction.static = flow_c, mask
         result.directions.append(direction)
     if not terms.names:
         return result
     means = terms.means(config.ssim_weight)
-    if use_full:
-        # blurred terms share the "mc" name: L_mc is the mean over the resolution and blur levels
-        result.losses["ff_mc"] = config.lambda_ff * config.lambda_mc * means["mc"]
-        result.losses["ff_cr"] = config.lambda_ff * config.lambda_cr * means["cr"]
-    if use_cam:
-        result.losses["cf_mc"] = config.lambda_cf * config.lambda_mc * means["cam_mc"]
-        result.losses["cf_cr"] = config.lambda_cf * config.lambda_cr * means["cam_cr"]
+    # blurred terms share the "mc" name: L_mc is the mean over the resolution and blur levels
+    for name, key, weight in (("mc", "ff_mc", config.lambda_ff * config.lambda_mc),
+                              ("cr", "ff_cr", config.lambda_ff * config.lambda_cr),
+                              ("cam_mc", "cf_mc", config.lambda_cf * config.lambda_mc),
+                              ("cam_cr", "cf_cr", config.lambda_cf * config.lambda_cr)):
+        if name in means:
+            result.losses[key] = weight * means[name]
     return result

@@ -19,6 +19,7 @@ UPGRADE_LABELS = ("auto", "motion", "checkpoint")
 STATIC_DECODERS = ("none", "triplane")
 CANONICAL_PROVIDERS = ("auto", "depth", "flow")
 FULL_FLOW_REGIONS = ("all", "dynamic")
+PAIR_MODES = ("partner", "both")
 
 
 def _non_negative(value: float) -> str | None:
@@ -57,12 +58,26 @@ class ReFlowParams:
     # --- pairs and flow ---
     pair_window: int = param(2, "largest distance, in training frames, between the two frames of a pair",
                              check=_positive)
+    pair_mode: str = param("partner", "partner (ours): each iteration renders the host's one view a and only "
+                                      "deforms + projects a nearby frame b (what L_mc and camera flow of a -> b "
+                                      "need); no L_cr (it needs b's render). both (the paper): both frames "
+                                      "rendered, both directions, L_cr", choices=PAIR_MODES)
+    pair_max_motion: float = param(0.0, "ours: a frame's partners are only the frames of its window whose camera "
+                                        "moves at most this multiple of the median camera motion between "
+                                        "neighbouring training frames (the closest one when none does); "
+                                        "0 = every frame of the window", check=_non_negative)
     flow_min_alpha: float = param(0.5, "pixels rendered with less opacity than this carry no flow (masked)",
                                   check=_fraction)
     flow_blur_sigmas: list[float] = param([2.0, 4.0], "extra motion-consistency terms on images blurred with "
                                               "these Gaussian sigmas in pixels (ours, beyond the paper: a wider "
                                               "capture range for large motion); [] = the paper's loss",
                                           check=_sigmas)
+    flow_blur_region: str = param("all", "pixels the blurred motion-consistency terms are evaluated on: all, or "
+                                         "dynamic (rendered dynamic share >= 0.5): blur mixes a moving object's "
+                                         "colours into the static pixels around it", choices=FULL_FLOW_REGIONS)
+    cam_flow_target_static: bool = param(False, "camera-flow terms only where the pixel also lands on a static "
+                                                "pixel of frame b (the paper masks both sides): b's rendered dynamic "
+                                                "share in pair_mode both, b's motion mask in pair_mode partner")
     full_flow_region: str = param("all", "pixels full flow matching is evaluated on: all (the paper) or dynamic "
                                          "(ours, a diagnostic: only where the rendered dynamic share is >= 0.5; "
                                          "static pixels are then left to camera flow matching)",
@@ -126,6 +141,10 @@ class ReFlowParams:
                                       "t - t_keyframe (one motion field shared by every keyframe's copy)")
     anchor_keyframes: bool = param(True, "ours: keyframe seeds are deformed by D(x, t - t_k) - D(x, 0), so they "
                                          "sit exactly where they were seeded at their own time")
+    window_cull: float = param(0.0, "ours, a cost knob: keyframe copies whose temporal window weight at the "
+                                     "rendered time is below this are not deformed (drawn with that weight "
+                                     "times their opacity, far below what the rasterizer draws); 0 = deform "
+                                     "every copy at every time", check=_fraction)
     time_scale_lr: float = param(0.005, "learning rate of the log temporal window widths (keyframe seeds)",
                                  check=_non_negative)
     # --- upgrading a 4DGS checkpoint (--start_checkpoint OLD/point_cloud/iteration_N) ---

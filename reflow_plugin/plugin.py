@@ -52,7 +52,7 @@ from .evaluate import flow_metrics, summary_line, write_flow_metrics
 from .external import ExternalFlowCache, external_flow_loss
 from .flow import camera_motion_pixels, flow_features, full_flow
 from .labels import aligned_depths, training_masks, vote_labels
-from .matching import DYNAMIC_KEY, FLOW_KEY, MatchingConfig, pair_losses
+from .matching import DYNAMIC_KEY, FLOW_KEY, FlowPair, MatchingConfig, dynamic_share, flow_losses
 from .pairs import PairSampler, curriculum_radius
 from .params import ReFlowParams
 from .seeding import BACKGROUND_FACTOR, keyframes, reference_frame, ring_depth, seed_dynamic_points, window_scale
@@ -100,9 +100,13 @@ class ReFlowPlugin(Plugin):
             min_alpha=self.p.flow_min_alpha, blur_sigmas=tuple(self.p.flow_blur_sigmas),
             occlusion=self.is_enabled("occlusion"), occlusion_alpha1=self.p.occlusion_alpha1,
             occlusion_alpha2=self.p.occlusion_alpha2, cam_occlusion=self.is_enabled("cam_occlusion"),
-            full_flow_dynamic_only=self.p.full_flow_region == "dynamic")
+            full_flow_dynamic_only=self.p.full_flow_region == "dynamic",
+            cam_target_static=self.p.cam_flow_target_static, blur_dynamic_only=self.p.flow_blur_region == "dynamic")
         self._blur_cache: dict[tuple[str, float], Tensor] = {}
         self._camera_motion: dict[tuple[int, int], float] = {}
+        self._partner_cameras: list = []  # pair_mode partner: per batch view, its frame b (or None)
+        self._partners_projected = False
+        self._run_dir_path = Path(".")
         self._last = None
         self.external: ExternalFlowCache | None = None
 
@@ -111,24 +115,55 @@ class ReFlowPlugin(Plugin):
     def uses_pairs(self) -> bool:
         return self.is_enabled("full_flow") or self.is_enabled("cam_flow") or self.is_enabled("ext_flow")
 
+    @property
+    def renders_both(self) -> bool:
+        """`pair_mode both`: the paper's pairwise batch (both frames rendered, both directions)."""
+        return self.p.pair_mode == "both"
+
     def _flow_step(self, ctx) -> bool:
         """Whether this iteration computes flow terms (every `flow_every` iterations)."""
         return ctx.iteration % self.p.flow_every == 0
 
-    def _use_full(self, ctx) -> bool:
-        return self.is_enabled("full_flow") and ctx.stage == "fine" and len(ctx.views) == 2 and self._flow_step(ctx)
+    def _full_now(self, ctx) -> bool:
+        """Full flow channels are rendered this iteration (full flow matching or the external-flow L1)."""
+        wanted = self.is_enabled("full_flow") or self.is_enabled("ext_flow")
+        return wanted and ctx.stage == "fine" and self._flow_step(ctx) and self._has_dynamic(ctx)
 
-    def _use_ext(self, ctx) -> bool:
-        return self.is_enabled("ext_flow") and ctx.stage == "fine" and len(ctx.views) == 2 and self._flow_step(ctx)
+    def _has_dynamic(self, ctx) -> bool:
+        """Full flow only differs from camera flow where something moves: with separation and no
+        dynamic Gaussian (a static scene) there are no full-flow terms; camera flow covers it."""
+        if not (self.is_enabled("separation") and self.is_enabled("cam_flow")):
+            return True
+        return bool(self._dynamic(ctx).any())
 
-    def _use_cam(self, ctx) -> bool:
-        if not self.is_enabled("cam_flow") or len(ctx.batch) != 2 or not self._flow_step(ctx):
-            return False
-        a, b = ctx.batch
+    def _cam_between(self, a, b) -> bool:
+        """Camera flow a -> b is computed (the cameras move enough for it to say anything)."""
         key = (a.uid, b.uid)
         if key not in self._camera_motion:
             self._camera_motion[key] = camera_motion_pixels(b.K, a.viewmat, b.viewmat, self.scene_depth)
         return self._camera_motion[key] >= self.p.cam_flow_min_motion
+
+    def _targets(self, ctx) -> list[tuple[int, Any, Any]]:
+        """This iteration's flow directions: (source view index, target camera, target's prepared
+        view or None when it was not projected)."""
+        if self.renders_both:
+            if len(ctx.views) != 2:
+                return []
+            return [(0, ctx.views[1].camera, ctx.views[1]), (1, ctx.views[0].camera, ctx.views[0])]
+        projected = iter(ctx.partners)
+        out = []
+        for k, camera in enumerate(self._partner_cameras):
+            if camera is not None:
+                out.append((k, camera, next(projected, None) if self._partners_projected else None))
+        return out
+
+    def _flags(self, ctx) -> tuple[list[bool], list[bool]]:
+        """Per direction of `_targets`: (full flow terms, camera flow terms) computed."""
+        targets = self._targets(ctx)
+        full = [self.is_enabled("full_flow") and self._full_now(ctx) and t[2] is not None for t in targets]
+        cam = [self.is_enabled("cam_flow") and self._flow_step(ctx) and self._cam_between(ctx.views[k].camera, b)
+               for k, b, _ in targets]
+        return full, cam
 
     def _dynamic(self, ctx) -> Tensor:
         return ctx.model.deformation_table
@@ -138,6 +173,7 @@ class ReFlowPlugin(Plugin):
 
     # ------------------------------------------------------------------ set-up
     def on_scene_loaded(self, ctx) -> None:
+        self._run_dir_path = self._run_dir(ctx)
         if self.uses_pairs:
             self.sampler = PairSampler(ctx.train_cameras, self.p.pair_window, seed=ctx.args.opt.seed)
         available, reason = canonical_available()
@@ -242,7 +278,7 @@ class ReFlowPlugin(Plugin):
         if not self.is_enabled("separation"):
             return None
         deformation = SeparatedDeformation(ctx.args.hidden, self.p.static_decoder, self.p.dynamic_zero_init,
-                                           self.p.relative_time, self.p.anchor_keyframes)
+                                           self.p.relative_time, self.p.anchor_keyframes, self.p.window_cull)
         return GaussianModel(ctx.args.model.sh_degree, ctx.args.hidden, deformation=deformation)
 
     def on_model_created(self, ctx) -> None:
@@ -316,9 +352,27 @@ class ReFlowPlugin(Plugin):
         z = means @ cam.viewmat[:3, :3].T[:, 2] + cam.viewmat[2, 3]
         z = z[z > 0]
         self.scene_depth = float(z.median()) if z.numel() else 1.0
+        if self.sampler is not None and self.p.pair_max_motion > 0 and self.sampler.motion is None:
+            self._limit_pair_motion(ctx.train_cameras)
         if ctx.stage == "fine" and self.p.dynamic_warmup > 0 and self.is_enabled("separation"):
             ctx.model.freeze(["deformation", "grid"])
         self._hide_dynamic_in_coarse(ctx)
+
+    def _limit_pair_motion(self, cameras) -> None:
+        """Partners only among frames whose cameras move at most pair_max_motion x the median motion
+        between neighbouring training frames (pairs.py: `limit_motion`)."""
+        n = len(cameras)
+        motion = np.zeros((n, n))
+        for i in range(n):
+            for j in range(n):
+                if i != j:
+                    motion[i, j] = camera_motion_pixels(cameras[j].K, cameras[i].viewmat, cameras[j].viewmat,
+                                                        self.scene_depth)
+        order = self.sampler.order
+        neighbours = [motion[order[p], order[p + 1]] for p in range(n - 1)]
+        limit = self.p.pair_max_motion * float(np.median(neighbours))
+        self.sampler.limit_motion(motion, limit)
+        self.info["pair_max_motion_px"] = limit
 
     def _hide_dynamic_in_coarse(self, ctx) -> None:
         """Coarse stage: dynamic Gaussians are made invisible (their opacity kept in a buffer that
@@ -337,26 +391,54 @@ class ReFlowPlugin(Plugin):
 
     # ------------------------------------------------------------------ per iteration
     def select_batch(self, ctx) -> list | None:
-        if self.sampler is None:
+        if self.sampler is None or not self.renders_both:
             return None
         if ctx.stage == "fine" and self._uses_curriculum:
-            total = int(self.p.curriculum_fraction * ctx.stage_iterations)
-            position = self.sampler.position[self.reference]
-            span = max(position, self.sampler.num_frames - 1 - position)
-            i, j = self.sampler.sample(position, curriculum_radius(ctx.iteration, total, span))
+            i, j = self.sampler.sample(*self._curriculum_span(ctx))
         else:
             i, j = self.sampler.sample()
         return [ctx.train_cameras[i], ctx.train_cameras[j]]
 
-    def extra_features(self, ctx, view_index: int) -> dict[str, Tensor] | None:
-        if len(ctx.views) != 2:
+    def _curriculum_span(self, ctx) -> tuple[int, int]:
+        """(reference position, allowed radius) of the curriculum at this iteration."""
+        total = int(self.p.curriculum_fraction * ctx.stage_iterations)
+        position = self.sampler.position[self.reference]
+        span = max(position, self.sampler.num_frames - 1 - position)
+        return position, curriculum_radius(ctx.iteration, total, span)
+
+    def select_partners(self, ctx) -> list | None:
+        """`pair_mode partner`: a nearby frame b for each view of the host's batch; b is projected
+        (not rendered) when this iteration renders full flow, else only its camera is used."""
+        self._partner_cameras, self._partners_projected = [], False
+        if self.sampler is None or self.renders_both or not self._flow_step(ctx):
             return None
+        index = {c.uid: i for i, c in enumerate(ctx.train_cameras)}
+        lo, hi = 0, self.sampler.num_frames - 1
+        if ctx.stage == "fine" and self._uses_curriculum:
+            center, radius = self._curriculum_span(ctx)
+            lo, hi = max(0, center - radius), min(hi, center + radius)
+        for camera in ctx.batch:
+            i = index.get(camera.uid)
+            inside = i is not None and lo <= self.sampler.position[i] <= hi
+            j = self.sampler.partner(i, lo, hi) if inside else None
+            self._partner_cameras.append(None if j is None else ctx.train_cameras[j])
+        chosen = [c for c in self._partner_cameras if c is not None]
+        self._partners_projected = bool(chosen) and self._full_now(ctx)
+        return chosen if self._partners_projected else None
+
+    def extra_features(self, ctx, view_index: int) -> dict[str, Tensor] | None:
+        targets = self._targets(ctx)
+        full, cam = self._flags(ctx)
         features: dict[str, Tensor] = {}
-        if self._use_full(ctx) or self._use_ext(ctx):
-            features[FLOW_KEY] = flow_features(ctx.views[view_index].projection, ctx.views[1 - view_index].projection)
-        if self._use_cam(ctx) or (self._use_full(ctx) and self.config.full_flow_dynamic_only):
-            features[DYNAMIC_KEY] = self._dynamic(ctx).to(ctx.views[view_index].colors.dtype).unsqueeze(1)
-        return features
+        for (k, _, target), use_full, use_cam in zip(targets, full, cam):
+            if k != view_index:
+                continue
+            if target is not None and self._full_now(ctx):
+                features[FLOW_KEY] = flow_features(ctx.views[k].projection, target.projection)
+            dynamic_terms = use_full and (self.config.full_flow_dynamic_only or self.config.blur_dynamic_only)
+            if use_cam or dynamic_terms:
+                features[DYNAMIC_KEY] = self._dynamic(ctx).to(ctx.views[k].colors.dtype).unsqueeze(1)
+        return features or None
 
     def loss_weights(self, ctx, view_index: int) -> Tensor | None:
         if ctx.stage != "coarse" or not self.p.coarse_static_only or not self.mask_tensors:
@@ -364,40 +446,57 @@ class ReFlowPlugin(Plugin):
         mask = self.mask_tensors.get(ctx.views[view_index].camera.uid)
         return None if mask is None else (~mask).float().unsqueeze(-1)
 
-    def _blurred(self, ctx, k: int, sigma: float) -> tuple[Tensor, Tensor]:
-        images = []
-        for view in (ctx.views[1 - k], ctx.views[k]):
-            key = (view.camera.image_name, sigma)
-            if key not in self._blur_cache:
-                self._blur_cache[key] = gaussian_blur(view.camera.image, sigma)
-            images.append(self._blur_cache[key])
-        return images[0], images[1]
+    def _blurred_image(self, camera, sigma: float) -> Tensor:
+        key = (camera.image_name, sigma)
+        if key not in self._blur_cache:
+            self._blur_cache[key] = gaussian_blur(camera.image, sigma)
+        return self._blur_cache[key]
+
+    def _flow_pairs(self, ctx, cam: list[bool]) -> list[FlowPair]:
+        """The directions of `_targets` as matching's FlowPair (target render / dynamic share when known)."""
+        pairs = []
+        targets = self._targets(ctx)
+        for (k, camera, _), use_cam in zip(targets, cam):
+            render, dynamic = None, None
+            if self.renders_both:
+                other = ctx.views[1 - k]
+                render = other.image
+                if use_cam and self.config.cam_target_static and DYNAMIC_KEY in other.extras:
+                    dynamic = dynamic_share(other)
+            elif use_cam and self.config.cam_target_static and camera.uid in self.mask_tensors:
+                dynamic = self.mask_tensors[camera.uid].to(ctx.views[k].colors.dtype)
+            reverse = 1 - k if self.renders_both else None
+            pairs.append(FlowPair(ctx.views[k], camera, render, dynamic, reverse))
+        return pairs
 
     def extra_losses(self, ctx) -> dict[str, Tensor] | None:
-        use_full, use_cam, use_ext = self._use_full(ctx), self._use_cam(ctx), self._use_ext(ctx)
-        if len(ctx.views) != 2 or not (use_full or use_cam or use_ext):
+        full, cam = self._flags(ctx)
+        use_ext = self.is_enabled("ext_flow") and self._full_now(ctx)
+        if not (any(full) or any(cam) or use_ext):
             self._last = None
             return None
-        result = pair_losses(ctx.views, self.config, use_full, use_cam,
-                             lambda k, sigma: self._blurred(ctx, k, sigma))
+        pairs = self._flow_pairs(ctx, cam)
+        result = flow_losses(pairs, self.config, full, cam,
+                             lambda k, sigma: (self._blurred_image(pairs[k].target, sigma),
+                                               self._blurred_image(pairs[k].source.camera, sigma)))
         if use_ext:
-            result.losses["ext"] = self.p.lambda_ext * self._external_loss(ctx)
+            result.losses["ext"] = self.p.lambda_ext * self._external_loss(pairs)
         ctx.metrics.update(result.metrics)
         dynamic = self._dynamic(ctx)
         if bool(dynamic.any()):
             ctx.metrics["dynamic_opacity"] = float(torch.sigmoid(ctx.model._opacity.detach()[dynamic]).mean())
-        self._last = result
+        self._last = (result, pairs)
         return result.losses
 
-    def _external_loss(self, ctx) -> Tensor:
-        """Both directions' L1 to the cached DIS flow (reflow_plugin.external)."""
+    def _external_loss(self, pairs: list[FlowPair]) -> Tensor:
+        """Every direction's L1 to the cached DIS flow (reflow_plugin.external)."""
         if self.external is None:
-            self.external = ExternalFlowCache(self._run_dir(ctx) / "external_flow")
+            self.external = ExternalFlowCache(self._run_dir_path / "external_flow")
         terms = []
-        for k in range(2):
-            a, b = ctx.views[k], ctx.views[1 - k]
+        for pair in pairs:
+            a = pair.source
             flow, valid = full_flow(a.extras[FLOW_KEY], a.alpha, self.p.flow_min_alpha)
-            flow_ext, confident = self.external.get(a.camera, b.camera)
+            flow_ext, confident = self.external.get(a.camera, pair.target)
             terms.append(external_flow_loss(flow, valid, flow_ext, confident))
         return torch.stack(terms).mean()
 
@@ -422,12 +521,13 @@ class ReFlowPlugin(Plugin):
             ctx.model.unfreeze(["deformation", "grid"])
         every = self.p.flow_vis_every
         if every and self._last is not None and (ctx.iteration % every == 0 or ctx.iteration == ctx.stage_iterations):
-            direction = self._last.directions[0]
+            result, pairs = self._last
+            direction, pair = result.directions[0], pairs[0]
             if direction.flow is not None:
-                a, b = ctx.views
-                write_panel(self._run_dir(ctx) / "flow_vis" / f"{ctx.iteration:06d}_{a.camera.image_name}_{b.camera.image_name}.png",
-                            a.camera.image.cpu().numpy(), direction.warped.detach().cpu().numpy(),
-                            b.camera.image.cpu().numpy(), direction.valid.cpu().numpy(),
+                a, b = pair.source.camera, pair.target
+                write_panel(self._run_dir(ctx) / "flow_vis" / f"{ctx.iteration:06d}_{a.image_name}_{b.image_name}.png",
+                            a.image.cpu().numpy(), direction.warped.detach().cpu().numpy(),
+                            b.image.cpu().numpy(), direction.valid.cpu().numpy(),
                             direction.flow.detach().cpu().numpy())
 
     def on_stage_end(self, ctx) -> None:

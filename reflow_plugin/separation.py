@@ -100,13 +100,17 @@ class SeparatedDeformation(DeformNetwork):
         relative_time: Gaussians with a `reflow_time_center` are deformed at t - center.
         anchored: with relative time, deform by D(x, t - center) - D(x, 0): exactly no motion at
             the Gaussian's own time (see the module docstring).
+        window_cull: keyframe copies whose temporal window weight at t is below this are not
+            deformed (they stay at their seeded place, with their windowed opacity, far below what
+            the rasterizer draws); 0 deforms every dynamic Gaussian.
     """
 
     def __init__(self, args: Any, static_decoder: str = "none", zero_init: bool = True,
-                 relative_time: bool = True, anchored: bool = True) -> None:
+                 relative_time: bool = True, anchored: bool = True, window_cull: float = 0.0) -> None:
         super().__init__(args)
         self.relative_time = relative_time
         self.anchored = anchored
+        self.window_cull = float(window_cull)
         if static_decoder not in ("none", "triplane"):
             raise ValueError(f"static_decoder must be 'none' or 'triplane', got {static_decoder!r}")
         if zero_init:
@@ -137,25 +141,37 @@ class SeparatedDeformation(DeformNetwork):
         # Keyframe seeds are deformed in their own time: tau = t - t_k, on 4DGS's whole [-1, 1] axis
         field_times = times if centers is None or not self.relative_time else times - centers.to(times.dtype)
         relative = centers is not None and self.relative_time
-        if dynamic.numel() == n and not relative:
+        deformed = dynamic
+        if self.window_cull > 0 and centers is not None and log_scales is not None:
+            deformed = self._inside_windows(dynamic, times, centers, log_scales)
+        if deformed.numel() == 0:
+            pass
+        elif deformed.numel() == n and not relative:
             out = super().forward(out, field_times)
         else:
             if relative and self.anchored:
-                moved = self._anchored_forward(out.index(dynamic), field_times[dynamic])
+                moved = self._anchored_forward(out.index(deformed), field_times[deformed])
             else:
-                moved = super().forward(out.index(dynamic), field_times[dynamic])
+                moved = super().forward(out.index(deformed), field_times[deformed])
             out = GaussianState(
-                out.means.index_copy(0, dynamic, moved.means),
-                out.log_scales.index_copy(0, dynamic, moved.log_scales),
-                out.rotations.index_copy(0, dynamic, moved.rotations),
-                out.opacity_logits.index_copy(0, dynamic, moved.opacity_logits),
-                out.shs.index_copy(0, dynamic, moved.shs),
+                out.means.index_copy(0, deformed, moved.means),
+                out.log_scales.index_copy(0, deformed, moved.log_scales),
+                out.rotations.index_copy(0, deformed, moved.rotations),
+                out.opacity_logits.index_copy(0, deformed, moved.opacity_logits),
+                out.shs.index_copy(0, deformed, moved.shs),
             )
         if centers is not None and log_scales is not None:
             logits = temporal_window(out.opacity_logits[dynamic], times[dynamic].to(centers.dtype),
                                      centers[dynamic], log_scales[dynamic])
             out = out.replace(opacity_logits=out.opacity_logits.index_copy(0, dynamic, logits))
         return out
+
+    def _inside_windows(self, dynamic: Tensor, times: Tensor, centers: Tensor, log_scales: Tensor) -> Tensor:
+        """The rows of `dynamic` whose temporal window weight at their time is >= window_cull."""
+        with torch.no_grad():
+            z = (times[dynamic].to(centers.dtype) - centers[dynamic]) / log_scales[dynamic].exp()
+            weight = torch.exp(-0.5 * z.square()).squeeze(1)
+        return dynamic[weight >= self.window_cull]
 
     def _anchored_forward(self, state: GaussianState, taus: Tensor) -> GaussianState:
         """state deformed by D(x, tau) - D(x, 0) ([M] rows, taus [M, 1]): one network call on 2M rows.

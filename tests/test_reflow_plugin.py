@@ -98,7 +98,7 @@ def test_disparity_fit_recovers_scale_and_shift():
 
 @pytest.fixture(scope="module")
 def built(tiny_scene, tmp_path_factory):
-    trainer = build_trainer(_argv(tiny_scene, tmp_path_factory.mktemp("built") / "run", 2, 2))
+    trainer = build_trainer(_argv(tiny_scene, tmp_path_factory.mktemp("built") / "run", 2, 2, "--pair_mode", "both"))
     trainer.build()
     trainer._begin_stage("fine", 2)  # optimizer built; the dynamic Gaussians visible
     return trainer
@@ -162,7 +162,7 @@ def test_full_flow_on_dynamic_pixels_only(built):
         expected.append(error[dyn_dir.valid].sum() / (3 * all_dir.valid.sum()))
     assert float(l1_dyn.losses["ff_mc"]) == pytest.approx(5.0 * float(torch.stack(expected).mean()), rel=1e-5)
     assert not torch.equal(dynamic_only.losses["ff_mc"], everywhere.losses["ff_mc"])
-    plugin = ReFlowPlugin({"ReFlowParams": ReFlowParams(full_flow_region="dynamic")},
+    plugin = ReFlowPlugin({"ReFlowParams": ReFlowParams(full_flow_region="dynamic", pair_mode="both")},
                           enabled=frozenset({"separation", "full_flow"}))
     plugin.scene_depth = 1.0
     ctx = built.ctx
@@ -193,23 +193,22 @@ def test_skips(built):
     plugin = built.hooks.plugins[0]
     ctx = built.ctx
     cam = built.train_cameras[0]
-    ctx.batch = [cam, cam]
-    assert not plugin._use_cam(ctx)  # a pair whose cameras do not move: no camera-flow loss
-    ctx.batch = [built.train_cameras[0], built.train_cameras[1]]
-    assert plugin._use_cam(ctx)
+    assert not plugin._cam_between(cam, cam)  # a pair whose cameras do not move: no camera-flow loss
+    assert plugin._cam_between(built.train_cameras[0], built.train_cameras[1])
     views, _ = _pair_views(built, stage="coarse")
     assert "reflow_flow" not in views[0].extras  # no full flow in the coarse stage (paper A.4)
     silent = ReFlowPlugin(enabled=frozenset({"separation"}))
     ctx.views = views
-    assert silent.extra_features(ctx, 0) == {} and silent.extra_losses(ctx) is None
-    assert silent.select_batch(ctx) is None  # no pairs: the host's own sampling
-    every = ReFlowPlugin({"ReFlowParams": ReFlowParams(flow_every=3)})  # flow terms every third iteration
+    assert silent.extra_features(ctx, 0) is None and silent.extra_losses(ctx) is None
+    assert silent.select_batch(ctx) is None and silent.select_partners(ctx) is None  # the host's own sampling
+    every = ReFlowPlugin({"ReFlowParams": ReFlowParams(flow_every=3, pair_mode="both")})  # every third iteration
     every.scene_depth = plugin.scene_depth
     ctx.stage = "fine"
     ctx.iteration = 6
-    assert every._use_full(ctx) and every._use_cam(ctx)
+    ctx.batch = [built.train_cameras[0], built.train_cameras[1]]
+    assert every._flags(ctx) == ([True, True], [True, True])
     ctx.iteration = 7
-    assert every.extra_features(ctx, 0) == {} and every.extra_losses(ctx) is None
+    assert every.extra_features(ctx, 0) is None and every.extra_losses(ctx) is None
 
 
 def test_coarse_stage_freezes_dynamic_gaussians_and_masks_the_loss(built):

@@ -162,3 +162,30 @@ def test_keyframes_spread_over_time():
     assert keyframes(cams, masks, 1, reference=7) == [7]
     assert window_scale([0.0, 0.5, 1.0]) == pytest.approx(0.3)
     assert window_scale([0.3]) == float("inf")
+
+
+def test_window_cull_deforms_only_the_copies_alive_at_t():
+    from reflow_plugin.separation import TIME_CENTER, TIME_LOG_SCALE
+
+    states = {}
+    for cull in (0.0, 1e-3):
+        model = _model(count=60, zero_init=False, window_cull=cull)
+        torch.manual_seed(1)
+        with torch.no_grad():  # time planes start at 1 (no time dependence): give them some
+            for level in model.deformation.deformation_net.grid.grids:
+                for index in (2, 4, 5):
+                    level[index].add_(0.3 * torch.randn_like(level[index]))
+        centers = torch.where(torch.arange(60) % 2 == 0, 0.2, 0.8).unsqueeze(1)  # two keyframe copies
+        model.register_gaussian_buffer(TIME_CENTER, centers)
+        model.register_gaussian_parameter(TIME_LOG_SCALE, torch.full((60, 1), float(np.log(0.05))), 0.01)
+        states[cull] = model.deform(0.25, "fine"), model.canonical_state()
+    (full, canonical), (culled, _) = states[0.0], states[1e-3]
+    table = model.deformation_table
+    alive = table & (torch.arange(60) % 2 == 0)  # window weight at t=0.25: 0.61 (copy at 0.2), ~1e-32 (0.8)
+    dead = table & ~alive
+    for field in ("means", "log_scales", "rotations", "shs"):
+        torch.testing.assert_close(getattr(culled, field)[alive], getattr(full, field)[alive], msg=field)
+        torch.testing.assert_close(getattr(culled, field)[dead], getattr(canonical, field)[dead], msg=field)
+    assert not torch.allclose(full.means[dead], canonical.means[dead])  # without the cull they were deformed
+    assert (torch.sigmoid(culled.opacity_logits[dead]) < 1e-6).all()  # and invisible either way
+    torch.testing.assert_close(culled.opacity_logits[alive], full.opacity_logits[alive])

@@ -7,8 +7,8 @@ Order of hook calls in one training run (see trainer.py):
     for stage in ("coarse", "fine"):
         on_stage_start
         every iteration:
-            select_batch
-            (host: deform + project every view of the batch)
+            select_batch  select_partners
+            (host: deform + project every view of the batch, and every partner)
             extra_features(view k) for each view   (host: composite each view)
             loss_weights(view k) for each view  (host: baseline losses)  extra_losses
             pre_backward  (backward)  post_backward
@@ -72,6 +72,8 @@ class TrainContext:
         model: the GaussianModel (None before build). stage: "coarse" | "fine".
         iteration: 1-based iteration within the stage (4DGS numbering); stage_iterations: its total.
         batch: this iteration's cameras. views: their ViewRender, same order.
+        partners: ViewRender of the cameras a plugin asked for with `select_partners`: deformed and
+            projected only (never composited, not in the baseline loss or densification).
         losses: named, weighted loss terms; loss: their sum (set before pre_backward).
         metrics: scalars to log this iteration (plugins may add their own).
         densify_record: what densification did this iteration (or None).
@@ -93,6 +95,7 @@ class TrainContext:
     stage_iterations: int = 0
     batch: list[Camera] = field(default_factory=list)
     views: list[ViewRender] = field(default_factory=list)
+    partners: list[ViewRender] = field(default_factory=list)
     losses: dict[str, Tensor] = field(default_factory=dict)
     loss: Tensor | None = None
     metrics: dict[str, float] = field(default_factory=dict)

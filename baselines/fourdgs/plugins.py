@@ -83,6 +83,15 @@ class Plugin:
         """Return the cameras of this iteration's batch (e.g. neighbouring frame pairs), or None."""
         return None
 
+    def select_partners(self, ctx: TrainContext) -> list | None:
+        """Cameras to deform and project (not composite) next to the batch, or None.
+
+        Their ViewRender land in ctx.partners (same order), before `extra_features`, so a view's
+        channels can be built from a partner's projection (e.g. flow towards a neighbouring frame)
+        without rendering it. Partners take no part in the baseline loss or densification.
+        """
+        return None
+
     def extra_features(self, ctx: TrainContext, view_index: int) -> dict[str, Tensor] | None:
         """Per-Gaussian feature channels to composite in view `view_index`'s pass.
 

@@ -221,10 +221,12 @@ class Trainer:
         if ctx.iteration % 1000 == 0:
             model.oneupSHdegree()
         ctx.batch = self.hooks.first("select_batch", ctx) or self.sampler.next_batch(opt.batch_size)
+        partners = self.hooks.first("select_partners", ctx) or []
         ctx.losses, ctx.metrics, ctx.densify_record = {}, {}, None
 
         with self.timer("deform_project"):
             ctx.views = [prepare_view(model, cam, ctx.stage, self.pipe.backend) for cam in ctx.batch]
+            ctx.partners = [prepare_view(model, cam, ctx.stage, self.pipe.backend) for cam in partners]
         with self.timer("rasterize"):
             for k, view in enumerate(ctx.views):
                 extra = self.hooks.merged("extra_features", ctx, k, prefix=False)

@@ -1,0 +1,138 @@
+"""ReFlow's `pair_mode partner` (one rendered view, a projected partner frame) and the flow-target options."""
+from __future__ import annotations
+
+import types
+
+import numpy as np
+import pytest
+import torch
+
+from baselines.fourdgs.app import build_trainer
+from baselines.fourdgs.renderer import composite_view, prepare_view
+from baselines.synthetic import get_scene, simulate
+from reflow_plugin.matching import DYNAMIC_KEY, FLOW_KEY, FlowPair, MatchingConfig, flow_losses
+from reflow_plugin.pairs import PairSampler
+from tests.test_reflow_plugin import _argv
+
+
+@pytest.fixture(scope="module")
+def partner_run(tiny_scene, tmp_path_factory):
+    """A trainer (default pair_mode partner) at the start of its fine stage."""
+    trainer = build_trainer(_argv(tiny_scene, tmp_path_factory.mktemp("partner") / "run", 2, 4))
+    trainer.build()
+    trainer._begin_stage("fine", 4)
+    return trainer
+
+
+def test_partner_step_renders_one_view_and_moves_the_partners_gaussians(partner_run):
+    trainer, ctx = partner_run, partner_run.ctx
+    plugin = trainer.hooks.plugins[0]
+    assert plugin.select_batch(ctx) is None  # the host's own single-view sampling, as the baseline's
+    captured = {}
+    original = plugin.extra_losses
+
+    def spy(ctx_):
+        captured["partners"] = list(ctx_.partners)
+        captured["views"] = list(ctx_.views)
+        for view in ctx_.partners:
+            view.state.means.retain_grad()
+        return original(ctx_)
+
+    plugin.extra_losses = spy
+    try:
+        ctx.iteration = 1
+        trainer.train_step()
+    finally:
+        plugin.extra_losses = original
+    views, partners = captured["views"], captured["partners"]
+    assert len(views) == 1 and len(partners) == 1  # one composited view, one projected partner
+    a, b = views[0].camera, partners[0].camera
+    order = plugin.sampler.position
+    index = {c.uid: i for i, c in enumerate(trainer.train_cameras)}
+    assert 1 <= abs(order[index[a.uid]] - order[index[b.uid]]) <= plugin.p.pair_window
+    assert partners[0].image is None  # never composited
+    assert FLOW_KEY in views[0].extras
+    assert {"reflow/ff_mc", "reflow/cf_mc"} <= set(ctx.losses) and "reflow/ff_cr" not in ctx.losses  # no render of b
+    dynamic = ctx.model.deformation_table
+    grad = partners[0].state.means.grad
+    assert grad is not None and grad[dynamic].abs().sum() > 0  # L_mc moves the Gaussians at t_b
+
+
+def test_target_side_static_mask_drops_pixels_landing_on_the_moving_object(partner_run):
+    ctx = partner_run.ctx
+    cams = partner_run.train_cameras
+    view = prepare_view(ctx.model, cams[0], "fine")
+    features = {DYNAMIC_KEY: ctx.model.deformation_table.float().unsqueeze(1)}
+    composite_view(view, ctx.background, features)
+    target = cams[2]
+    h, w = view.alpha.shape[:2]
+    moving = torch.zeros(h, w)
+    moving[:, : w // 2] = 1.0  # b's left half "moves"
+    plain = flow_losses([FlowPair(view, target)], MatchingConfig(), [False], [True])
+    masked = flow_losses([FlowPair(view, target, target_dynamic=moving)], MatchingConfig(), [False], [True])
+    flow = plain.directions[0].cam_flow
+    lands_x = (torch.arange(w).float() + 0.5).unsqueeze(0) + flow[..., 0]
+    on_moving = lands_x < w // 2 - 1  # clearly inside the "moving" half (bilinear edge excluded)
+    kept = masked.directions[0].static
+    assert not (kept & on_moving).any()
+    assert torch.equal(kept, kept & plain.directions[0].static) and kept.sum() < plain.directions[0].static.sum()
+    assert set(plain.losses) == {"cf_mc"}  # no render of b: no cross-time term
+
+
+def test_blurred_terms_on_dynamic_pixels_only(partner_run):
+    from reflow_plugin.flow import flow_features
+
+    ctx = partner_run.ctx
+    cams = partner_run.train_cameras
+    model = ctx.model
+    a, b = prepare_view(model, cams[0], "fine"), prepare_view(model, cams[1], "fine")
+    composite_view(a, ctx.background, {FLOW_KEY: flow_features(a.projection, b.projection),
+                                       DYNAMIC_KEY: model.deformation_table.float().unsqueeze(1)})
+    dynamic = (a.extras[DYNAMIC_KEY][..., 0] / a.alpha[..., 0].clamp_min(1e-6)) >= 0.5
+    # blurred I_b all 0, blurred I_a 1 on dynamic pixels and 0 elsewhere: the blurred term's error
+    # is 1 on dynamic pixels, 0 on static ones
+    blurred = lambda k, sigma: (torch.zeros_like(cams[1].image), dynamic.float().unsqueeze(-1).expand(-1, -1, 3))  # noqa: E731
+    pair = [FlowPair(a, cams[1])]
+    full_res = flow_losses(pair, MatchingConfig(ssim_weight=0.0), [True], [False])
+    everywhere = flow_losses(pair, MatchingConfig(blur_sigmas=(2.0,), ssim_weight=0.0), [True], [False], blurred)
+    dynamic_only = flow_losses(pair, MatchingConfig(blur_sigmas=(2.0,), ssim_weight=0.0, blur_dynamic_only=True),
+                               [True], [False], blurred)
+    valid = full_res.directions[0].valid
+    n_dynamic, n_valid = float((valid & dynamic).sum()), float(valid.sum())
+    assert 0 < n_dynamic < n_valid
+    base = float(full_res.losses["ff_mc"]) / 5.0
+    # L_mc = mean of the full-resolution term and the blurred term, each a mean over its own mask
+    assert float(everywhere.losses["ff_mc"]) / 5.0 == pytest.approx((base + n_dynamic / n_valid) / 2, rel=1e-4)
+    assert float(dynamic_only.losses["ff_mc"]) / 5.0 == pytest.approx((base + 1.0) / 2, rel=1e-4)
+
+
+def test_pair_sampler_motion_limit_keeps_partners_on_the_same_rig_row():
+    cams = [types.SimpleNamespace(time=t, frame_index=i) for i, t in enumerate(np.linspace(0, 1, 8))]
+    motion = np.full((8, 8), 10.0)
+    motion[:4, 4:] = motion[4:, :4] = 80.0  # frames 0-3 and 4-7 on two rows of a rig
+    np.fill_diagonal(motion, 0.0)
+    sampler = PairSampler(cams, window=2, seed=0)
+    sampler.limit_motion(motion, 30.0)
+    for _ in range(200):
+        i, j = sampler.sample()
+        assert (i < 4) == (j < 4)
+        k = sampler.partner(3)
+        assert k in (1, 2)
+    assert sampler.partner(3, lo=3, hi=5) == 4  # no partner within the limit: the closest one
+    assert sampler.partner(3, lo=3, hi=3) is None
+    with pytest.raises(ValueError):
+        sampler.limit_motion(np.zeros((3, 3)), 1.0)
+
+
+def test_static_scene_has_no_dynamic_branch_and_no_full_flow(tmp_path):
+    scene = simulate(get_scene("static", frames=8, width=24, height=24, seed=0), tmp_path / "static", progress=False)
+    trainer = build_trainer(_argv(scene, tmp_path / "run", 2, 3))
+    result = trainer.train()
+    assert result.final_iteration == 3
+    model = trainer.ctx.model
+    assert not bool(model.deformation_table.any())
+    import json
+
+    log = [json.loads(line) for line in (tmp_path / "run" / "train_log.jsonl").read_text().splitlines()]
+    losses = {k for r in log if r["kind"] == "iter" for k in r.get("losses", {})}
+    assert not any(k.startswith("reflow/ff") for k in losses), losses
