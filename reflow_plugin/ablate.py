@@ -15,6 +15,15 @@ Rows (paper Table 4, ids as in the paper; `--rows` takes the names):
     ours                + camera flow matching (everything)
     external_flow       "Ours (External Flow)": full flow matching replaced by L1 to DIS flow
 
+Protocol (what every row holds equal): the host's schedule, seed and single-view sampler (one
+rendered training view per iteration, the same random sequence of views in every row), the same
+densification statistic (the screen-space gradient of the baseline loss of that one view), the
+same evaluation. Rows with flow terms (#1, #5, Ours, External Flow) additionally deform and
+project ONE partner frame within `--pair_window` of the rendered view (ReFlow's `pair_mode
+partner`): it is never rendered and adds nothing to the baseline loss or the densification
+statistic. The paper's pairwise batch (both frames rendered, both directions, L_cr) is `--pair_mode
+both`; with it the flow rows render two views per iteration and #4 one (not a fair comparison).
+
 Each (scene, row) trains in `OUT/<scene>/<row>` with `train.py` (so every run is an ordinary run,
 reproducible from its `config.json`). A run counts as done when `OUT/<scene>/<row>/ablate_done.json`
 exists (written after train.py and the flow evaluation succeed); a folder without it is a torn run
@@ -59,6 +68,8 @@ ROWS: dict[str, tuple[str, list[str]]] = {
     "ours": ("Ours", ["--plugin", "reflow"]),
     "external_flow": ("Ours (External Flow)", ["--plugin", "reflow", "--enable", "ext_flow", "--disable", "full_flow"]),
 }
+PROTOCOL = ("every row: one rendered training view per iteration (the host's seeded sampler), the baseline "
+            "loss's densification statistic; rows with flow terms also project (never render) one partner frame")
 METRICS = ("PSNR", "SSIM", "LPIPS-vgg", "PSNR-dynamic", "EPE-test")
 
 
@@ -224,7 +235,7 @@ def markdown(table: dict[str, dict[str, dict]], rows: list[str]) -> str:
         cells.append(" / ".join((_cell(mean("PSNR"), 2), _cell(mean("SSIM"), 3), _cell(mean("LPIPS-vgg"), 3))))
         cells += [_cell(mean("PSNR-dynamic"), 2), _cell(mean("EPE-test"), 3)]
         lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines + [""] + [f"- {n}" for n in sorted(notes)])
+    return "\n".join(lines + [""] + [f"- {n}" for n in [f"Protocol: {PROTOCOL}", *sorted(notes)]])
 
 
 def write_outputs(table: dict[str, dict[str, dict]], rows: list[str], out: Path) -> str:

@@ -148,3 +148,41 @@ def test_config_json_records_facts(tmp_path):
     assert json.loads(path.read_text())["_components"] == {"reflow": ["full_flow"]}
     with pytest.raises(ValueError, match="must start with"):
         write_cfg_args(tmp_path, args, {"components": {}})
+
+
+class _Partner(Plugin):
+    """Asks for the next training camera as a partner of the batch's view and records what it saw."""
+
+    name = "partner"
+
+    def select_partners(self, ctx):
+        self.batch = list(ctx.batch)
+        index = next(i for i, c in enumerate(ctx.train_cameras) if c is ctx.batch[0])
+        return [ctx.train_cameras[(index + 1) % len(ctx.train_cameras)]]
+
+    def extra_losses(self, ctx):
+        self.partners, self.views = list(ctx.partners), list(ctx.views)
+        return None
+
+
+def test_partners_are_projected_not_rendered_and_stay_out_of_the_loss(tiny_scene, tmp_path):
+    from baselines.fourdgs.app import REPO_ROOT, build_trainer
+
+    argv = ["-s", str(tiny_scene), "-m", str(tmp_path / "run"), "--quiet",
+            "--configs", str(REPO_ROOT / "arguments/synthetic/default.py")]
+    trainer = build_trainer(argv)
+    trainer.build()
+    trainer._begin_stage("fine", 2)
+    plugin = _Partner()
+    trainer.hooks = HookRunner([plugin])
+    trainer.ctx.iteration = 1
+    trainer.train_step()
+    ctx = trainer.ctx
+    assert len(plugin.views) == 1 and len(plugin.partners) == 1  # batch_size 1: one rendered view
+    partner = plugin.partners[0]
+    assert partner.image is None and partner.colors is None  # projected only
+    assert partner.projection.means2d.shape[0] == ctx.model.num_gaussians
+    assert partner.camera is not plugin.views[0].camera
+    view = plugin.views[0]
+    expected = (view.image - view.camera.image).abs().mean()
+    torch.testing.assert_close(ctx.losses["l1"].detach(), expected.detach())  # the partner adds no loss

@@ -44,7 +44,7 @@ class ViewRender:
     Attributes:
         camera: the Camera (its image is the ground truth, [H, W, 3]).
         state: deformed Gaussians at camera.time (pre-activation, GaussianState).
-        colors: [N, 3] view-dependent RGB from SH.
+        colors: [N, 3] view-dependent RGB from SH (None for a partner, which is never composited).
         projection: screen-space means/covariances/conics/depths/radii/visible ([N]-leading).
         image: [H, W, 3] render (with background); depth, alpha: [H, W, 1].
         extras: {name: [H, W, c]} maps of the plugins' extra feature channels.
@@ -52,7 +52,7 @@ class ViewRender:
 
     camera: Camera
     state: GaussianState
-    colors: Tensor
+    colors: Tensor | None
     projection: Projection
     image: Tensor | None = None
     depth: Tensor | None = None

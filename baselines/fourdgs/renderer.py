@@ -24,22 +24,26 @@ if TYPE_CHECKING:
     from .gaussian_model import GaussianModel
 
 
-def prepare_view(model: GaussianModel, camera: Camera, stage: str, backend: str = "auto") -> ViewRender:
+def prepare_view(model: GaussianModel, camera: Camera, stage: str, backend: str = "auto",
+                 colors: bool = True) -> ViewRender:
     """Deform to camera.time, evaluate SH colours and project (no compositing yet).
 
+    Args:
+        colors: False for a view that is only projected, never composited (a plugin's partner
+            frame): its `colors` stay None.
     Returns:
         ViewRender with state, colors [N, 3] and projection filled in; means2d retains its grad
         (densification statistics read it after backward).
     """
     state = model.deform(camera.time, stage)
-    colors = sh_to_rgb(state.shs, state.means, camera.camera_center, model.active_sh_degree)
+    rgb = sh_to_rgb(state.shs, state.means, camera.camera_center, model.active_sh_degree) if colors else None
     projection = project_gaussians(
         state.means, state.quats, state.scales, camera.viewmat, camera.K, camera.width, camera.height,
         opacities=state.opacities, backend=backend,
     )
     if projection.means2d.requires_grad:
         projection.means2d.retain_grad()
-    return ViewRender(camera=camera, state=state, colors=colors, projection=projection)
+    return ViewRender(camera=camera, state=state, colors=rgb, projection=projection)
 
 
 def composite_view(

@@ -226,7 +226,7 @@ class Trainer:
 
         with self.timer("deform_project"):
             ctx.views = [prepare_view(model, cam, ctx.stage, self.pipe.backend) for cam in ctx.batch]
-            ctx.partners = [prepare_view(model, cam, ctx.stage, self.pipe.backend) for cam in partners]
+            ctx.partners = [prepare_view(model, cam, ctx.stage, self.pipe.backend, colors=False) for cam in partners]
         with self.timer("rasterize"):
             for k, view in enumerate(ctx.views):
                 extra = self.hooks.merged("extra_features", ctx, k, prefix=False)
