@@ -141,10 +141,11 @@ class ReFlowParams:
                                       "t - t_keyframe (one motion field shared by every keyframe's copy)")
     anchor_keyframes: bool = param(True, "ours: keyframe seeds are deformed by D(x, t - t_k) - D(x, 0), so they "
                                          "sit exactly where they were seeded at their own time")
-    window_cull: float = param(0.0, "ours, a cost knob: keyframe copies whose temporal window weight at the "
-                                     "rendered time is below this are not deformed (drawn with that weight "
-                                     "times their opacity, far below what the rasterizer draws); 0 = deform "
-                                     "every copy at every time", check=_fraction)
+    window_cull: float = param(1e-3, "ours, a cost knob: keyframe copies whose temporal window weight at the "
+                                      "rendered time is below this are not deformed; below 1/255 this is exact "
+                                      "(their windowed opacity is under the rasterizer's 1/255 visibility "
+                                      "cut, so they are not drawn wherever they are); 0 = deform every copy",
+                               check=_fraction)
     time_scale_lr: float = param(0.005, "learning rate of the log temporal window widths (keyframe seeds)",
                                  check=_non_negative)
     # --- upgrading a 4DGS checkpoint (--start_checkpoint OLD/point_cloud/iteration_N) ---

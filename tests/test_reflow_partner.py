@@ -136,3 +136,29 @@ def test_static_scene_has_no_dynamic_branch_and_no_full_flow(tmp_path):
     log = [json.loads(line) for line in (tmp_path / "run" / "train_log.jsonl").read_text().splitlines()]
     losses = {k for r in log if r["kind"] == "iter" for k in r.get("losses", {})}
     assert not any(k.startswith("reflow/ff") for k in losses), losses
+
+
+def test_window_cull_renders_exactly_what_deforming_every_copy_renders(partner_run):
+    from baselines.fourdgs.renderer import render
+
+    ctx = partner_run.ctx
+    deformation = ctx.model.deformation
+    assert deformation.window_cull == pytest.approx(1e-3)  # the default
+    camera = partner_run.train_cameras[3]
+    from reflow_plugin.separation import TIME_CENTER, TIME_LOG_SCALE
+
+    model = ctx.model
+    dynamic = model.deformation_table.nonzero().squeeze(1)
+    times = torch.full((model.num_gaussians, 1), float(camera.time))
+    buffers = model.gaussian_buffers
+    alive = deformation._inside_windows(dynamic, times, buffers[TIME_CENTER], buffers[TIME_LOG_SCALE].detach())
+    assert 0 < len(alive) < len(dynamic)  # some copies are culled at this time, some are not
+    with torch.no_grad():
+        culled = render(ctx.model, camera, "fine", ctx.background)
+        deformation.window_cull = 0.0
+        try:
+            every = render(ctx.model, camera, "fine", ctx.background)
+        finally:
+            deformation.window_cull = 1e-3
+    torch.testing.assert_close(culled.image, every.image, atol=1e-6, rtol=0)
+    torch.testing.assert_close(culled.alpha, every.alpha, atol=1e-6, rtol=0)
