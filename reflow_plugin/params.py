@@ -75,7 +75,7 @@ class ReFlowParams:
     flow_blur_region: str = param("all", "pixels the blurred motion-consistency terms are evaluated on: all, or "
                                          "dynamic (rendered dynamic share >= 0.5): blur mixes a moving object's "
                                          "colours into the static pixels around it", choices=FULL_FLOW_REGIONS)
-    cam_flow_target_static: bool = param(False, "camera-flow terms only where the pixel also lands on a static "
+    cam_flow_target_static: bool = param(True, "camera-flow terms only where the pixel also lands on a static "
                                                 "pixel of frame b (the paper masks both sides): b's rendered dynamic "
                                                 "share in pair_mode both, b's motion mask in pair_mode partner")
     full_flow_region: str = param("all", "pixels full flow matching is evaluated on: all (the paper) or dynamic "
