@@ -61,6 +61,8 @@ WHOLE_VARIANTS = {
     "reflow": ["--plugin", "reflow"],
     "reflow_both": ["--plugin", "reflow", "--pair_mode", "both"],
     "baseline_batch2": ["--batch_size", "2"],
+    "reflow_fe2": ["--plugin", "reflow", "--flow_every", "2"],
+    "reflow_no_comp_init": ["--plugin", "reflow", "--disable", "comp_init"],
 }
 WHOLE_PHASES = ("load", "setup", "masks+canonical", "training steps", "partner projection", "flow channels",
                 "flow maps+losses", "dynamic deformation", "densification pass", "test events", "flow evaluation",
