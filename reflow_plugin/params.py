@@ -78,10 +78,10 @@ class ReFlowParams:
     cam_flow_target_static: bool = param(True, "camera-flow terms only where the pixel also lands on a static "
                                                 "pixel of frame b (the paper masks both sides): b's rendered dynamic "
                                                 "share in pair_mode both, b's motion mask in pair_mode partner")
-    full_flow_region: str = param("all", "pixels full flow matching is evaluated on: all (the paper) or dynamic "
-                                         "(ours, a diagnostic: only where the rendered dynamic share is >= 0.5; "
-                                         "static pixels are then left to camera flow matching)",
-                                  choices=FULL_FLOW_REGIONS)
+    full_flow_region: str = param("dynamic", "pixels full flow matching is evaluated on: dynamic (ours, the default: "
+                                             "only where the rendered dynamic share is >= 0.5, each pixel weighted as "
+                                             "in the loss over all pixels; static pixels are left to camera flow "
+                                             "matching; all pixels without separation) or all (the paper)", choices=FULL_FLOW_REGIONS)
     flow_every: int = param(1, "compute the flow-matching terms (and their flow channels) every this many "
                                "iterations only: a cost knob of the accuracy-versus-time sweep",
                             check=_positive)

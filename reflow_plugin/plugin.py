@@ -100,7 +100,8 @@ class ReFlowPlugin(Plugin):
             min_alpha=self.p.flow_min_alpha, blur_sigmas=tuple(self.p.flow_blur_sigmas),
             occlusion=self.is_enabled("occlusion"), occlusion_alpha1=self.p.occlusion_alpha1,
             occlusion_alpha2=self.p.occlusion_alpha2, cam_occlusion=self.is_enabled("cam_occlusion"),
-            full_flow_dynamic_only=self.p.full_flow_region == "dynamic",
+            # without separation there is no static/dynamic model to split the pixels by: all pixels
+            full_flow_dynamic_only=self.p.full_flow_region == "dynamic" and self.is_enabled("separation"),
             cam_target_static=self.p.cam_flow_target_static, blur_dynamic_only=self.p.flow_blur_region == "dynamic")
         self._blur_cache: dict[tuple[str, float], Tensor] = {}
         self._camera_motion: dict[tuple[int, int], float] = {}
