@@ -5,11 +5,14 @@
 Forward + backward of the deformation alone (synthetic config's HexPlane), median of interleaved
 repeats: 4DGS's `DeformNetwork` on every Gaussian, then `SeparatedDeformation` with 0%, 20%, 50%
 and 100% dynamic Gaussians, without and with keyframe anchoring (the anchored field is evaluated
-twice per dynamic Gaussian: at t - t_k and at 0). Prints a table; asserts nothing.
+twice per dynamic Gaussian: at t - t_k and at 0), and 20% dynamic in 8 keyframe windows (ReFlow's
+initial widths) at t = 0.5 without and with `window_cull` (only the copies alive at t deformed).
+Prints a table; asserts nothing.
 """
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import statistics
 import sys
@@ -28,7 +31,7 @@ import types  # noqa: E402
 from arguments.config import read_config_chain  # noqa: E402
 from baselines.fourdgs.deformation import DeformNetwork  # noqa: E402
 from baselines.fourdgs.state import GaussianState  # noqa: E402
-from reflow_plugin.separation import TIME_CENTER, SeparatedDeformation  # noqa: E402
+from reflow_plugin.separation import TIME_CENTER, TIME_LOG_SCALE, SeparatedDeformation  # noqa: E402
 
 CONFIG = Path(__file__).resolve().parents[1] / "arguments" / "synthetic" / "default.py"
 
@@ -58,7 +61,9 @@ def main() -> None:
     hidden = hidden_params()
     baseline = DeformNetwork(hidden)
     separated = SeparatedDeformation(hidden, zero_init=False)
-    for module in (baseline, separated):
+    culled = SeparatedDeformation(hidden, zero_init=False, window_cull=1e-3)
+    culled.load_state_dict(separated.state_dict())
+    for module in (baseline, separated, culled):
         module.set_aabb(torch.ones(3), -torch.ones(3))
 
     def make_state() -> GaussianState:
@@ -75,6 +80,14 @@ def main() -> None:
         if share > 0:
             cases[f"separated, {share:.0%} dynamic, anchored keyframes"] = (
                 separated, {"deformation_table": table, TIME_CENTER: centers})
+    # 8 keyframe copies with ReFlow's initial windows (0.6 x the keyframe spacing), 20% dynamic
+    table = torch.zeros(n, dtype=torch.bool)
+    table[: n // 5] = True
+    keyframe_times = torch.linspace(0, 1, 8)
+    windows = {"deformation_table": table, TIME_CENTER: keyframe_times[torch.randint(8, (n, 1))],
+               TIME_LOG_SCALE: torch.full((n, 1), math.log(0.6 / 7))}
+    cases["separated, 20% dynamic, anchored, 8 keyframe windows"] = (separated, windows)
+    cases["separated, 20% dynamic, anchored, 8 keyframe windows, window_cull 1e-3"] = (culled, windows)
     samples = {name: [] for name in cases}
     for _ in range(args.repeats):
         for name, (module, buffers) in cases.items():
