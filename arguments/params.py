@@ -268,6 +268,8 @@ class RunParams:
                               comma_list=True)
     log_every: int = param(10, "iterations between progress/log updates", ours=True,
                            check=_check_positive)
+    overwrite: bool = param(False, "clear the earlier run's files in -m before this run (without it, "
+                            "a folder holding a run is refused)", ours=True)
 
 
 @dataclass

@@ -35,6 +35,7 @@ from baselines.data import Camera
 from baselines.data.motion_masks import estimate_motion_masks
 
 log = logging.getLogger(__name__)
+EMPTY_DATASET_MASKS = "dataset (every mask empty: no moving pixel)"  # results.json["reflow"]["mask_source"]
 MIN_FIT_POINTS = 12
 CACHE_VERSION = 1
 
@@ -114,6 +115,10 @@ def training_masks(cameras: Sequence[Camera], source: str, cache_dir: Path | Non
     if source == "none":
         return None, "none"
     from_dataset = dataset_masks(cameras)
+    if from_dataset is not None and source in ("masks", "auto") and not any(m.any() for m in from_dataset):
+        log.warning("the dataset's motion masks mark no moving pixel in any of the %d training views: nothing "
+                    "is treated as moving (label_source=estimate estimates masks instead)", len(cameras))
+        return from_dataset, EMPTY_DATASET_MASKS
     if source == "masks":
         if from_dataset is None:
             missing = sum(c.mask is None for c in cameras)

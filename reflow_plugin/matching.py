@@ -11,7 +11,9 @@ component, passes the forward-backward test of the pair's two full flows; with `
 the camera-flow terms pass the same test on the pair's two camera flows; with
 `full_flow_dynamic_only`, a diagnostic of ours, L_mc and L_cr only on dynamic pixels, each pixel
 weighted as in the loss over all pixels). Static pixels: the
-rendered dynamic-ness channel (1 for dynamic Gaussians) below 0.5 of the pixel's opacity.
+rendered dynamic-ness channel (1 for dynamic Gaussians) below 0.5 of the pixel's opacity; with
+`moving` masks (the coarse stage, where the dynamic Gaussians are hidden and that channel is 0
+everywhere) also outside view a's mask, and sampling view b outside its mask.
 Directions are averaged; the returned terms are already weighted:
 
     ff_mc = lambda_ff * lambda_mc * L_mc        ff_cr = lambda_ff * lambda_cr * L_cr
@@ -24,7 +26,7 @@ photometric loss only "sees" motion within about a pixel of its sample, blur wid
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -114,8 +116,16 @@ def _static_pixels(view: ViewRender) -> Tensor:
     return (view.extras[DYNAMIC_KEY][..., 0] / view.alpha[..., 0].clamp_min(1e-6)) < STATIC_BELOW
 
 
+def _off_moving(moving: Sequence[Tensor], k: int, flow: Tensor) -> Tensor:
+    """[H, W] bool: view k's pixel lies outside its motion mask and its sample in the other view
+    (at q + flow, bilinear: all four neighbours) outside that view's mask."""
+    lands, _ = backward_warp(moving[1 - k].to(flow.dtype).unsqueeze(-1), flow)
+    return ~moving[k] & (lands[..., 0] < 1e-6)
+
+
 def pair_losses(views: list[ViewRender], config: MatchingConfig, use_full: bool, use_cam: bool,
-                blurred: Callable[[int, float], tuple[Tensor, Tensor]] | None = None) -> PairResult:
+                blurred: Callable[[int, float], tuple[Tensor, Tensor]] | None = None,
+                moving: Sequence[Tensor] | None = None) -> PairResult:
     """Flow matching losses of a 2-view batch (see the module docstring).
 
     Args:
@@ -123,6 +133,7 @@ def pair_losses(views: list[ViewRender], config: MatchingConfig, use_full: bool,
             ([H, W, 7] flow channels towards the other view), with `use_cam` or
             `config.full_flow_dynamic_only` extras[DYNAMIC_KEY] ([H, W, 1]).
         blurred: (view index k, sigma) -> (blurred I_other, blurred I_k), for `blur_sigmas`.
+        moving: per view [H, W] bool motion masks (True = moving) kept out of camera-flow matching.
     """
     result = PairResult()
     terms = _Terms()
@@ -164,6 +175,8 @@ def pair_losses(views: list[ViewRender], config: MatchingConfig, use_full: bool,
         if use_cam:
             flow_c, valid_c = camera_flows[k]
             static = _static_pixels(a)
+            if moving is not None:
+                static = static & _off_moving(moving, k, flow_c)
             warped_c, inside = backward_warp(sources, flow_c)
             mask = valid_c & inside & static
             if config.cam_occlusion:

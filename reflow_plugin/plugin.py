@@ -81,6 +81,7 @@ class ReFlowPlugin(Plugin):
     components = ("comp_init", "separation", "full_flow", "cam_flow", "occlusion", "cam_occlusion", "ext_flow")
     default_disabled = ("occlusion", "cam_occlusion", "ext_flow")
     param_groups = {"ReFlowParams": ReFlowParams}
+    outputs = (RUN_FOLDER, "flow", "flow_metrics.json")  # what --overwrite clears of a ReFlow run
 
     def __init__(self, params: Mapping[str, Any] | None = None, enabled: frozenset[str] | None = None) -> None:
         super().__init__(params, enabled)
@@ -124,6 +125,8 @@ class ReFlowPlugin(Plugin):
     def _use_cam(self, ctx) -> bool:
         if not self.is_enabled("cam_flow") or len(ctx.batch) != 2 or not self._flow_step(ctx):
             return False
+        if ctx.stage == "coarse" and self._hides_dynamic(ctx) and not self.mask_tensors:
+            return False  # every pixel would count as static, the moving object's too: no camera flow yet
         a, b = ctx.batch
         key = (a.uid, b.uid)
         if key not in self._camera_motion:
@@ -264,7 +267,7 @@ class ReFlowPlugin(Plugin):
                 model.deformation.fit_box(model.get_xyz.detach()[model.deformation_table], self.p.dynamic_aabb_margin)
             else:
                 log.warning("separation: no Gaussian is labelled dynamic, so the scene is modelled as static "
-                            "(no motion masks: label_source=%s)", self.p.label_source)
+                            "(label_source=%s; motion masks: %s)", self.p.label_source, self.info.get("mask_source"))
         self._record(ctx)
 
     def _dynamic_lr_multiplier(self, model: GaussianModel) -> float:
@@ -320,6 +323,9 @@ class ReFlowPlugin(Plugin):
             ctx.model.freeze(["deformation", "grid"])
         self._hide_dynamic_in_coarse(ctx)
 
+    def _hides_dynamic(self, ctx) -> bool:
+        return HIDDEN_OPACITY in ctx.model.registered_buffers
+
     def _hide_dynamic_in_coarse(self, ctx) -> None:
         """Coarse stage: dynamic Gaussians are made invisible (their opacity kept in a buffer that
         follows densification), so the static scene is fitted alone; the fine stage restores them."""
@@ -364,6 +370,15 @@ class ReFlowPlugin(Plugin):
         mask = self.mask_tensors.get(ctx.views[view_index].camera.uid)
         return None if mask is None else (~mask).float().unsqueeze(-1)
 
+    def _coarse_moving(self, ctx) -> list[Tensor] | None:
+        """Coarse stage: the pair's motion masks. Nothing is deformed yet (and the dynamic Gaussians are
+        hidden, so the rendered dynamic-ness calls every pixel static): the masks keep the moving
+        object out of camera-flow matching."""
+        if ctx.stage != "coarse" or not self.mask_tensors:
+            return None
+        masks = [self.mask_tensors.get(view.camera.uid) for view in ctx.views]
+        return None if any(m is None for m in masks) else [m.bool() for m in masks]
+
     def _blurred(self, ctx, k: int, sigma: float) -> tuple[Tensor, Tensor]:
         images = []
         for view in (ctx.views[1 - k], ctx.views[k]):
@@ -379,7 +394,7 @@ class ReFlowPlugin(Plugin):
             self._last = None
             return None
         result = pair_losses(ctx.views, self.config, use_full, use_cam,
-                             lambda k, sigma: self._blurred(ctx, k, sigma))
+                             lambda k, sigma: self._blurred(ctx, k, sigma), moving=self._coarse_moving(ctx))
         if use_ext:
             result.losses["ext"] = self.p.lambda_ext * self._external_loss(ctx)
         ctx.metrics.update(result.metrics)

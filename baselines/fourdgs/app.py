@@ -3,13 +3,17 @@
 `train_from_argv` turns a train.py command line into a finished run: plugins are resolved first
 (they add parameter groups and flags), then flags and config files are parsed, components
 toggled, the dataset loaded and checked, the model trained, the held-out views evaluated and the
-novel-time video written. Every input check happens before the first training iteration.
+novel-time video written. Every input check happens before the first training iteration; the
+model folder is checked (run_folder.py) before the dataset is read, and claimed (run.json) only
+once everything loaded. `run_cli` turns input errors, OS failures (a full disk, a read-only
+folder) and Ctrl-C into one line each.
 """
 from __future__ import annotations
 
 import logging
 import os
 import random
+import shlex
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +26,10 @@ from baselines import thread_policy
 
 from .family_config import dataset_family, default_config, family_background, log_decision, strip_bare_defaults
 from .evaluate import EvalResult, evaluate_cameras, render_video, write_metrics
+from .interrupt import TrainingInterrupted
 from .plugins import Plugin, load_plugin_class, resolve_components
+from .run_folder import (RunFolder, RunIdentity, check_run_folder, check_saved_iteration, current_run,
+                         default_model_path, last_checkpoint)
 from .trainer import Trainer, TrainResult
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -79,6 +86,7 @@ def build_trainer(argv: list[str]) -> Trainer:
     from arguments.saved import model_dir_of_checkpoint
     from baselines.data import load_scene
 
+    typed = list(argv)
     argv, bare_defaults = strip_bare_defaults(list(argv))
     embedded = not _has_flag(argv, "-s", "--source_path")
 
@@ -104,7 +112,9 @@ def build_trainer(argv: list[str]) -> Trainer:
     components = resolve_components(plugin_classes, args.run.disable, args.run.enable)
     seed_everything(args.opt.seed)
 
-    source = embedded_scene_path() if embedded else Path(args.model.source_path)
+    source = REPO_ROOT / "data" / "synthetic" / EMBEDDED_SCENE if embedded else Path(args.model.source_path)
+    folder = _check_model_folder(args, typed, source, plugin_classes, components)  # before any long work
+    source = embedded_scene_path() if embedded else source
     args.model.source_path = str(source)
     if args.sources.get("ModelParams.white_background", "default") == "default":
         family = "synthetic" if embedded else dataset_family(source, args.model.dataset_type)
@@ -119,10 +129,8 @@ def build_trainer(argv: list[str]) -> Trainer:
         resolution=args.model.resolution, eval=args.model.eval,
         white_background=args.model.white_background, llffhold=args.model.llffhold,
     )
-    name = args.run.expname or source.name
-    model_path = Path(args.model.model_path or REPO_ROOT / "output" / name)
-    args.model.model_path = str(model_path)
-    model_path.mkdir(parents=True, exist_ok=True)
+    model_path = folder.path
+    folder.commit()
     write_cfg_args(model_path, args, {"_components": {name: sorted(active) for name, active in components.items()},
                                        "_dataset_layout": scene.metadata.get("layout_detection"),
                                        "_default_config": decision.as_dict() if decision else None})
@@ -133,7 +141,43 @@ def build_trainer(argv: list[str]) -> Trainer:
     for plugin in plugins:
         log.info("plugin %s: components %s", plugin.name, sorted(plugin.enabled) or "none")
     log.info("threads: %s", thread_policy.last_decision)
-    return Trainer(args, scene, plugins, model_path)
+    trainer = Trainer(args, scene, plugins, model_path)
+    trainer.run_folder = folder
+    return trainer
+
+
+def _check_model_folder(args, argv: list[str], source: Path, plugin_classes: list[type[Plugin]],
+                        components: dict[str, frozenset[str]]) -> RunFolder:
+    """Where the run goes and whether that folder may take it (run_folder.py); nothing is written."""
+    start = args.run.start_checkpoint
+    if args.model.model_path:
+        model_path = Path(args.model.model_path)
+    elif start and Path(start).is_file() and (Path(start).parent / "run.json").is_file():
+        model_path = Path(start).parent  # continuing a chkpnt of a run folder: that folder
+    elif args.run.expname:
+        model_path = REPO_ROOT / "output" / args.run.expname
+    else:
+        model_path = default_model_path(REPO_ROOT / "output" / source.name)
+    args.model.model_path = str(model_path)
+    identity = RunIdentity.of([c.name for c in plugin_classes], components, str(source))
+    outputs = [name for cls in plugin_classes for name in getattr(cls, "outputs", ())]
+    for name in _recorded_plugins(model_path):
+        try:
+            outputs += list(getattr(load_plugin_class(name), "outputs", ()))
+        except ValueError:
+            pass  # a plugin not installed now: its files are kept
+    plan = check_run_folder(model_path, identity, overwrite=args.run.overwrite, start_checkpoint=start,
+                            plugin_outputs=outputs)
+    return RunFolder(plan, identity, ["train.py", *argv])
+
+
+def _recorded_plugins(model_path: Path) -> list[str]:
+    from arguments.saved import read_saved_plugins
+
+    try:
+        return read_saved_plugins(model_path) if model_path.is_dir() else []
+    except ValueError:
+        return []
 
 
 def finish_run(trainer: Trainer, result: TrainResult) -> RunSummary:
@@ -165,23 +209,86 @@ def train_from_argv(argv: list[str]) -> RunSummary:
     trainer = build_trainer(argv)
     if trainer.run.detect_anomaly:
         torch.autograd.set_detect_anomaly(True)
-    result = trainer.train()
-    return finish_run(trainer, result)
+    folder = trainer.run_folder
+    try:
+        summary = finish_run(trainer, trainer.train())
+    except TrainingInterrupted as stop:
+        folder.end("interrupted", stopped_at=f"{stop.stage} iteration {stop.iteration}",
+                   last_checkpoint=str(stop.checkpoint), resume=resume_command(argv, folder.path, stop.checkpoint))
+        raise
+    except BaseException as exc:
+        if trainer.ctx.iteration == 0 and not folder.record.get("saved"):
+            folder.abandon()  # a bad input found before the first iteration: leave the folder as it was
+        else:
+            state = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+            folder.end(state, reason=f"{type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''}",
+                       stopped_at=f"{trainer.ctx.stage} iteration {trainer.ctx.iteration}")
+        raise
+    finally:
+        trainer.run_log.close()
+    folder.end("finished", stopped_at=f"{trainer.ctx.stage} iteration {trainer.ctx.iteration}")
+    return summary
+
+
+def resume_command(argv: list[str], model_path: Path, checkpoint: Path | None) -> str:
+    """The train.py command that continues this run from `checkpoint` (argv as typed, -m and the
+    checkpoint set, --overwrite dropped)."""
+    kept: list[str] = []
+    skip = False
+    for arg in argv:
+        if skip:
+            skip = False
+            continue
+        if arg in ("-m", "--model_path", "--start_checkpoint"):
+            skip = True
+            continue
+        if arg == "--overwrite" or arg.startswith(("--model_path=", "-m=", "--start_checkpoint=")):
+            continue
+        kept.append(arg)
+    tail = ["-m", str(model_path)] + (["--start_checkpoint", str(checkpoint)] if checkpoint else [])
+    return shlex.join(["python", "train.py", *kept, *tail])
 
 
 def run_cli(entry: Callable[[], int]) -> None:
-    """Run `entry`; input errors (bad flags, files, config keys, plugins) and a diverged training
-    (non-finite loss or gradients, named) print one line, exit 2.
+    """Run `entry`; input errors (bad flags, files, config keys, plugins), OS failures (a full
+    disk, a read-only folder: the path and the reason) and a diverged training (non-finite loss or
+    gradients, named) print one line, exit 2. Ctrl-C prints where the run stopped, its last
+    checkpoint and the command that resumes it, exit 130.
 
     Set FOURDGS_TRACEBACK=1 to see the full traceback instead.
     """
     try:
         sys.exit(entry())
-    except (ValueError, FileNotFoundError, NotADirectoryError, FloatingPointError) as exc:
+    except (ValueError, OSError, FloatingPointError, MemoryError) as exc:
         if os.environ.get("FOURDGS_TRACEBACK"):
             raise
-        print(f"error: {exc}", file=sys.stderr)
+        message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        if isinstance(exc, MemoryError):
+            message = f"out of memory ({message}): lower -r/--resolution or the number of Gaussians"
+        print(f"error: {message}", file=sys.stderr)
         sys.exit(2)
+    except (TrainingInterrupted, KeyboardInterrupt) as exc:
+        if os.environ.get("FOURDGS_TRACEBACK"):
+            raise
+        print(interrupted_line(exc), file=sys.stderr)
+        sys.exit(130)
+
+
+def interrupted_line(exc: BaseException) -> str:
+    """One line after Ctrl-C: where the run stopped, its last checkpoint, how to resume."""
+    run = current_run()
+    if isinstance(exc, TrainingInterrupted):
+        where, checkpoint = f"at {exc.stage} iteration {exc.iteration}", exc.checkpoint
+    else:
+        where = "before training started" if run is None else f"({run.record.get('stopped_at') or 'before the first save'})"
+        checkpoint = last_checkpoint(run.path) if run is not None else None
+    if run is None:
+        return "interrupted; nothing was saved"
+    if checkpoint is None:
+        return (f"interrupted {where}; no checkpoint in {run.path} (--checkpoint_iterations writes them): "
+                f"rerun with --overwrite to start again")
+    argv = run.command[1:]
+    return f"interrupted {where}; last checkpoint {checkpoint}; resume: {resume_command(argv, run.path, checkpoint)}"
 
 
 @dataclass
@@ -219,6 +326,7 @@ def load_run(argv: list[str]) -> LoadedRun:
     pc_dir = point_cloud_dir(model_path, iteration)
     if not (pc_dir / "point_cloud.ply").is_file():
         raise FileNotFoundError(f"{pc_dir}: no point_cloud.ply (trained iterations: {find_latest_iteration(model_path)})")
+    check_saved_iteration(model_path, pc_dir)  # never metrics of another run's leftover folder
     scene = load_scene(
         args.model.source_path, dataset_type=args.model.dataset_type, images=args.model.images,
         resolution=args.model.resolution, eval=args.model.eval,

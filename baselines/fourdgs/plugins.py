@@ -42,6 +42,8 @@ class Plugin:
         default_disabled: components off unless ``--enable``d.
         param_groups: config groups the plugin adds, {group name: dataclass}; they are settable
             from config files (``ReFlowParams = dict(...)``) and the command line like 4DGS's.
+        outputs: names of the files/folders the plugin writes in the model folder (what
+            ``--overwrite`` clears besides the host's outputs; anything else is kept).
     Instance attributes set by the host: ``params`` ({group name: dataclass instance}) and
     ``enabled`` (the frozenset of active components).
     """
@@ -50,6 +52,7 @@ class Plugin:
     components: ClassVar[tuple[str, ...]] = ()
     default_disabled: ClassVar[tuple[str, ...]] = ()
     param_groups: ClassVar[dict[str, type]] = {}
+    outputs: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, params: Mapping[str, Any] | None = None, enabled: frozenset[str] | None = None) -> None:
         self.params = dict(params or {})

@@ -93,8 +93,18 @@ def project_gaussians_gsplat(
     if opacities is not None and not kwargs:  # gsplat < 1.5 does not cull faint Gaussians itself
         visible = visible & (opacities.detach() >= 1.0 / 255.0)
     radii = radii * visible[:, None]
+    means2d, conics, cov2d = culled_standins(means2d, conics, visible, K)
+    depths = (means @ viewmat[2, :3]) + viewmat[2, 3]  # camera-space z, defined for every Gaussian
+    return Projection(means2d=means2d, cov2d=cov2d, conics=conics, depths=depths, radii=radii, visible=visible)
 
-    # Culled entries are uninitialised memory in gsplat: replace them before any arithmetic.
+
+def culled_standins(means2d: Tensor, conics: Tensor, visible: Tensor, K: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(means2d [N, 2], conics [N, 3], cov2d [N, 2, 2]) with every culled entry replaced.
+
+    Culled entries are uninitialised memory in gsplat: they become the principal point and an
+    identity conic/covariance before any arithmetic. These stand-ins are finite but meaningless
+    (read them only where `visible`); tests use this function to mimic gsplat's output on the CPU.
+    """
     vis2 = visible[:, None]
     principal = torch.stack([K[0, 2], K[1, 2]]).to(means2d.dtype)
     means2d = torch.where(vis2, means2d, principal.expand_as(means2d))
@@ -103,8 +113,7 @@ def project_gaussians_gsplat(
     a, b, c = conics.unbind(-1)
     det = a * c - b * b
     cov2d = torch.stack([c, -b, -b, a], dim=-1).reshape(-1, 2, 2) / det[:, None, None]
-    depths = (means @ viewmat[2, :3]) + viewmat[2, 3]  # camera-space z, defined for every Gaussian
-    return Projection(means2d=means2d, cov2d=cov2d, conics=conics, depths=depths, radii=radii, visible=visible)
+    return means2d, conics, cov2d
 
 
 def composite_gsplat(

@@ -362,9 +362,9 @@ def _refine(data: dict[int, _Frame], pairs: dict[tuple[int, int], PairPrediction
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, max(iterations, 1), eta_min=lr * 0.01)
     with torch.no_grad():
         initial = float(loss_fn())
-    # off a terminal (log files, CI) a redraw every 30 s instead of a carriage-return flood
-    bar = tqdm(range(iterations), desc=desc, disable=not progress, leave=False,
-               mininterval=0.1 if sys.stderr.isatty() else 30.0)
+    # the training bar's rule: a bar on a terminal only; in a log file (CI, clusters) its carriage
+    # returns (set_postfix redraws every step, whatever mininterval says) would flood the log
+    bar = tqdm(range(iterations), desc=desc, disable=not progress or not sys.stderr.isatty(), leave=False)
     for _ in bar:
         optimizer.zero_grad()
         loss = loss_fn()
