@@ -9,14 +9,9 @@ Full flow, rendered in ONE rasterization pass as extra feature channels of view 
 
 m and S are the projected means and 2D covariances (eps2d blur included: those are the
 Gaussians the pixels were blended with). sqrt(S_a)^-1 = sqrt(S_a^-1) is built from the conic
-that the projection already computes. A 7th channel v_i = 1 for Gaussians whose projection into
-view b exists: in front of camera b and not culled (`Projection.visible`; 0 otherwise, with A_i = I
-and c_i = 0 so their values stay finite): a pixel is valid when alpha(q) >= min_alpha and
-sum w v / alpha >= 0.99. Culling matters on the gsplat backend, which gives every culled Gaussian
-(outside the image, too faint) the principal point as its mean and an identity covariance: read as a
-flow target, a Gaussian leaving the image would point at the image centre. The torch projection
-keeps the true off-screen means, but their targets lie outside image b, which the warp masks anyway,
-so both backends mark these pixels invalid alike. Invalid pixels get flow 0 and are masked;
+that the projection already computes. A 7th channel v_i = 1 for Gaussians that are in front of
+camera b (0 otherwise, with A_i = I and c_i = 0 so their values stay finite): a pixel is valid
+when alpha(q) >= min_alpha and sum w v / alpha >= 0.99. Invalid pixels get flow 0 and are masked;
 no NaN or inf reaches values or gradients.
 
 Camera flow, from view a's expected depth D_a and the two cameras (paper appendix A.3):
@@ -59,10 +54,9 @@ def sqrtm_spd2(a: Tensor, b: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]
 
 
 def valid_in_view(projection: Projection, near: float = NEAR) -> Tensor:
-    """[N] bool: a flow target exists: visible (not culled; culled entries hold stand-in values), in
-    front of the camera's near plane, finite screen values."""
+    """[N] bool: in front of the camera's near plane with finite screen values (flow target exists)."""
     finite = torch.isfinite(projection.means2d).all(dim=1) & torch.isfinite(projection.cov2d).flatten(1).all(dim=1)
-    return projection.visible & (projection.depths >= near) & finite
+    return (projection.depths >= near) & finite
 
 
 def flow_features(proj_a: Projection, proj_b: Projection, near: float = NEAR) -> Tensor:

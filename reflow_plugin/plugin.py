@@ -139,6 +139,11 @@ class ReFlowPlugin(Plugin):
     def _run_dir(self, ctx) -> Path:
         return Path(ctx.model_path) / RUN_FOLDER
 
+    def min_train_frames(self) -> tuple[int, str]:
+        """Pairs (full_flow, cam_flow, ext_flow) and the canonical alignment (comp_init) need 2 frames."""
+        needs = [c for c in ("full_flow", "cam_flow", "ext_flow", "comp_init") if self.is_enabled(c)]
+        return (2, ", ".join(needs)) if needs else (1, "")
+
     # ------------------------------------------------------------------ set-up
     def on_scene_loaded(self, ctx) -> None:
         if self.uses_pairs:

@@ -1,9 +1,10 @@
 """Flow targets that must not exist (issue 25, items 14 and 15).
 
-14: on the gsplat backend a Gaussian culled from view b (outside the image, too faint) carries the
-    principal point as its mean and an identity covariance; read as a flow target it would send
-    view a's pixels to the image centre. Tested on the CPU with gsplat's stand-ins applied to the
-    torch projection (`culled_standins`, the function the gsplat backend itself uses).
+14: on the gsplat backend a Gaussian culled from view b (outside the image, too faint) came with
+    the principal point as its mean and an identity covariance (gsplat leaves culled entries
+    uninitialised); read as a flow target it sent view a's pixels to the image centre, marked valid.
+    The backend now fills culled entries with the torch projection's values (`fill_culled`), so the
+    flow is the CPU's. Tested on the CPU: gsplat's raw output is mimicked (uninitialised = NaN).
 15: in the coarse stage the dynamic Gaussians are hidden, so the rendered dynamic-ness channel
     calls every pixel static; camera-flow matching must still leave the moving object's pixels out.
 """
@@ -12,61 +13,67 @@ from __future__ import annotations
 import torch
 
 from baselines.render import Projection, composite, project_gaussians
-from baselines.render.gsplat_backend import culled_standins
+from baselines.render.gsplat_backend import fill_culled
 from reflow_plugin.flow import flow_features, full_flow, pixel_grid
 from tests.raster_cases import intrinsics
 
 W, H = 24, 20
 
 
-def _as_gsplat(projection: Projection, K: torch.Tensor) -> Projection:
-    means2d, conics, cov2d = culled_standins(projection.means2d, projection.conics, projection.visible, K)
-    return Projection(means2d=means2d, cov2d=cov2d, conics=conics, depths=projection.depths,
-                      radii=projection.radii, visible=projection.visible)
+def _gsplat_like(truth: Projection, means, quats, scales, K) -> Projection:
+    """What project_gaussians_gsplat returns: gsplat's values where visible (here the torch ones),
+    uninitialised memory (NaN) where culled, then the backend's fill."""
+    culled = ~truth.visible[:, None]
+    raw_means = torch.where(culled, torch.full_like(truth.means2d, float("nan")), truth.means2d)
+    raw_conics = torch.where(culled, torch.full_like(truth.conics, float("nan")), truth.conics)
+    means2d, conics, cov2d = fill_culled(raw_means, raw_conics, truth.visible, means, quats, scales, torch.eye(4), K,
+                                         W, H)
+    return Projection(means2d=means2d, cov2d=cov2d, conics=conics, depths=truth.depths, radii=truth.radii,
+                      visible=truth.visible)
 
 
 def _leaving_scene():
-    """Two Gaussians at z = 4: one stays near the centre, one near the right edge leaves the image in b."""
+    """Three Gaussians at z = 4: one stays, one leaves the image in view b, one fades out in view b."""
     K = intrinsics(W, H, focal=20.0)
     z = 4.0
 
     def at(px: float, py: float) -> list[float]:
         return [(px - float(K[0, 2])) / float(K[0, 0]) * z, (py - float(K[1, 2])) / float(K[1, 1]) * z, z]
 
-    means_a = torch.tensor([at(6.0, 10.0), at(20.0, 10.0)])
-    means_b = torch.tensor([at(7.0, 10.0), at(60.0, 10.0)])  # the second one is 36 px right of the image
-    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2)
-    scales = torch.full((2, 3), 0.35)
-    opacities = torch.tensor([0.95, 0.95])
-    return K, means_a, means_b, quats, scales, opacities
+    means_a = torch.tensor([at(6.0, 10.0), at(20.0, 10.0), at(12.0, 4.0)])
+    means_b = torch.tensor([at(7.0, 10.0), at(60.0, 10.0), at(13.0, 4.0)])  # #2 ends 36 px right of the image
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 3)
+    scales = torch.full((3, 3), 0.35)
+    opacity_a = torch.tensor([0.95, 0.95, 0.95])
+    opacity_b = torch.tensor([0.95, 0.95, 1e-4])  # #3 fades out (a temporal opacity window)
+    return K, means_a, means_b, quats, scales, opacity_a, opacity_b
 
 
-def test_gaussians_culled_in_view_b_are_no_flow_target():
-    K, means_a, means_b, quats, scales, opacities = _leaving_scene()
+def test_gaussians_culled_in_view_b_flow_to_where_they_are():
+    K, means_a, means_b, quats, scales, opacity_a, opacity_b = _leaving_scene()
     eye = torch.eye(4)
-    proj_a = project_gaussians(means_a, quats, scales, eye, K, W, H, opacities=opacities, backend="reference")
-    proj_b = project_gaussians(means_b, quats, scales, eye, K, W, H, opacities=opacities, backend="reference")
-    assert proj_a.visible.all() and proj_b.visible.tolist() == [True, False]
+    proj_a = project_gaussians(means_a, quats, scales, eye, K, W, H, opacities=opacity_a, backend="reference")
+    proj_b = project_gaussians(means_b, quats, scales, eye, K, W, H, opacities=opacity_b, backend="reference")
+    assert proj_a.visible.all() and proj_b.visible.tolist() == [True, False, False]
+    gsplat_b = _gsplat_like(proj_b, means_b, quats, scales, K)
+    torch.testing.assert_close(gsplat_b.means2d, proj_b.means2d)
+    torch.testing.assert_close(gsplat_b.cov2d, proj_b.cov2d)
 
-    results = {}
-    for name, pb in (("torch", proj_b), ("gsplat", _as_gsplat(proj_b, K))):
-        features = flow_features(proj_a, pb)
-        assert features[1, 6] == 0 and features[0, 6] == 1  # the culled Gaussian is not a valid target
-        maps, _, alpha = composite(proj_a, opacities, features, W, H, backend="reference")
-        results[name] = full_flow(maps, alpha, 0.5)
-
-    flow, valid = results["gsplat"]
-    # the leaving Gaussian's pixels (around x = 20) are invalid, not sent to the principal point
-    assert not valid[8:13, 18:23].any()
+    flows = {}
+    for name, pb in (("torch", proj_b), ("gsplat", gsplat_b)):
+        maps, _, alpha = composite(proj_a, opacity_a, flow_features(proj_a, pb), W, H, backend="reference")
+        flows[name] = full_flow(maps, alpha, 0.5)
+    flow, valid = flows["gsplat"]
+    torch.testing.assert_close(flow, flows["torch"][0])
+    assert torch.equal(valid, flows["torch"][1])
     targets = pixel_grid(H, W, flow) + flow
+    # the leaving Gaussian's pixels flow 40 px right, off the image: not to the principal point
+    assert valid[10, 20] and abs(float(flow[10, 20, 0]) - 40.0) < 0.5
     centre = torch.stack([K[0, 2], K[1, 2]])
-    near_centre = (targets - centre).norm(dim=-1) < 3.0
-    assert not (valid & near_centre & (pixel_grid(H, W, flow)[..., 0] > 15)).any()
-    # the staying Gaussian still has its flow (1 px to the right)
+    assert not (valid[8:13, 18:23] & ((targets[8:13, 18:23] - centre).norm(dim=-1) < 3.0)).any()
+    # the faded one still has its target (1 px right), the staying one too
+    assert valid[4, 12] and abs(float(flow[4, 12, 0]) - 1.0) < 0.05
     assert valid[10, 6] and abs(float(flow[10, 6, 0]) - 1.0) < 0.05
-    # both backends' conventions give the same flow and validity
-    torch.testing.assert_close(results["torch"][0], flow)
-    assert torch.equal(results["torch"][1], valid)
 
 
 def _coarse_camera_flow_step(scene, out):

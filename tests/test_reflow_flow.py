@@ -196,7 +196,7 @@ def test_hard_cases_are_finite(case):
     if case == "behind_camera_b":
         assert not valid.any()  # the target of every covered pixel is undefined
     if case == "far_outside":
-        assert not valid.any()  # culled in view b: no flow target (gsplat gives it stand-in values)
+        assert valid.any() and not (valid & inside).any()
 
 
 def test_camera_flow_invalid_depths():

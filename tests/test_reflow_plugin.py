@@ -46,9 +46,10 @@ def test_bad_input_is_rejected_before_training(tiny_scene, tmp_path, capsys):
     with pytest.raises(ConfigError, match="lambda_cf"):
         build_trainer(_argv(tiny_scene, tmp_path / "b", 1, 1, "--configs", str(config)))
     single = simulate(get_scene("balloon", frames=2, width=16, height=16), tmp_path / "two", progress=False)
-    trainer = build_trainer(_argv(single, tmp_path / "c", 1, 1))  # --eval: frame 0 tests, 1 frame trains
-    with pytest.raises(PairError, match="1 training frame"):
-        trainer.build()
+    # --eval: frame 0 tests, 1 frame trains; refused with the scene, before the model folder is claimed
+    with pytest.raises(ValueError, match="1 training frame.*--plugin reflow needs at least 2 training frames"):
+        build_trainer(_argv(single, tmp_path / "c", 1, 1))
+    assert not (tmp_path / "c").exists()
 
 
 def test_pair_sampler_and_curriculum():

@@ -13,23 +13,22 @@ from __future__ import annotations
 import logging
 import os
 import random
-import shlex
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
 
 from baselines import thread_policy
+from baselines.cli_exit import flag_value as _flag_value, has_flag as _has_flag
+from baselines.cli_exit import interrupted_line, resume_command, run_cli  # noqa: F401  (train.py, render.py, tests)
+from baselines.run_folder import (RunFolder, RunIdentity, TrainingInterrupted, check_run_folder, check_saved_iteration,
+                                  default_model_path)
 
-from .family_config import dataset_family, default_config, family_background, log_decision, strip_bare_defaults
 from .evaluate import EvalResult, evaluate_cameras, render_video, write_metrics
-from .interrupt import TrainingInterrupted
+from .family_config import dataset_family, default_config, family_background, log_decision, strip_bare_defaults
 from .plugins import Plugin, load_plugin_class, resolve_components
-from .run_folder import (RunFolder, RunIdentity, check_run_folder, check_saved_iteration, current_run,
-                         default_model_path, last_checkpoint)
 from .trainer import Trainer, TrainResult
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -58,22 +57,6 @@ def embedded_scene_path(root: Path = REPO_ROOT) -> Path:
     return path
 
 
-def _has_flag(argv: list[str], *names: str) -> bool:
-    return any(a == n or a.startswith(n + "=") for a in argv for n in names)
-
-
-def _flag_value(argv: list[str], *names: str) -> str | None:
-    """The last value of a single-valued flag (``-s X`` or ``-s=X``), or None."""
-    value = None
-    for i, arg in enumerate(argv):
-        for name in names:
-            if arg == name and i + 1 < len(argv):
-                value = argv[i + 1]
-            elif arg.startswith(name + "="):
-                value = arg.split("=", 1)[1]
-    return value
-
-
 def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)
@@ -85,6 +68,7 @@ def build_trainer(argv: list[str]) -> Trainer:
     from arguments import parse_train_args, peek_plugins, write_cfg_args
     from arguments.saved import model_dir_of_checkpoint
     from baselines.data import load_scene
+    from baselines.data.errors import EmptySplitError
 
     typed = list(argv)
     argv, bare_defaults = strip_bare_defaults(list(argv))
@@ -124,20 +108,25 @@ def build_trainer(argv: list[str]) -> Trainer:
             args.sources["ModelParams.white_background"] = f"{family} family"
             log.info("background: %s (%s family; -w / --no-white_background to choose)",
                      "white" if white else "black", family)
-    scene = load_scene(
-        source, dataset_type=args.model.dataset_type, images=args.model.images,
-        resolution=args.model.resolution, eval=args.model.eval,
-        white_background=args.model.white_background, llffhold=args.model.llffhold,
-    )
+    plugins: list[Plugin] = [
+        cls({g: args.extra[g] for g in cls.param_groups}, components[cls.name]) for cls in plugin_classes
+    ]
+    try:
+        scene = load_scene(
+            source, dataset_type=args.model.dataset_type, images=args.model.images,
+            resolution=args.model.resolution, eval=args.model.eval,
+            white_background=args.model.white_background, llffhold=args.model.llffhold,
+        )
+    except EmptySplitError as err:
+        raise EmptySplitError(f"{err}{_frame_needs(plugins, 0, prefix='; ')}") from None
+    if len(scene.train_cameras) < max([1] + [p.min_train_frames()[0] for p in plugins]):
+        raise ValueError(f"{source}: {len(scene.train_cameras)} training frame(s){_frame_needs(plugins, len(scene.train_cameras))}")
     model_path = folder.path
     folder.commit()
     write_cfg_args(model_path, args, {"_components": {name: sorted(active) for name, active in components.items()},
                                        "_dataset_layout": scene.metadata.get("layout_detection"),
                                        "_default_config": decision.as_dict() if decision else None})
 
-    plugins: list[Plugin] = [
-        cls({g: args.extra[g] for g in cls.param_groups}, components[cls.name]) for cls in plugin_classes
-    ]
     for plugin in plugins:
         log.info("plugin %s: components %s", plugin.name, sorted(plugin.enabled) or "none")
     log.info("threads: %s", thread_policy.last_decision)
@@ -169,6 +158,18 @@ def _check_model_folder(args, argv: list[str], source: Path, plugin_classes: lis
     plan = check_run_folder(model_path, identity, overwrite=args.run.overwrite, start_checkpoint=start,
                             plugin_outputs=outputs)
     return RunFolder(plan, identity, ["train.py", *argv])
+
+
+def _frame_needs(plugins: list[Plugin], have: int, prefix: str = ": ") -> str:
+    """What the plugins need in training frames beyond `have` (one clause per plugin), or ''."""
+    parts = []
+    for plugin in plugins:
+        count, what = plugin.min_train_frames()
+        if count > max(have, 1) or (have == 0 and count > 1):
+            names = ",".join(c.strip() for c in what.split(",") if c.strip())
+            parts.append(f"--plugin {plugin.name} needs at least {count} training frames for {what} "
+                         f"(more frames, or --disable {names})")
+    return prefix + "; ".join(parts) if parts else ""
 
 
 def _recorded_plugins(model_path: Path) -> list[str]:
@@ -228,67 +229,6 @@ def train_from_argv(argv: list[str]) -> RunSummary:
         trainer.run_log.close()
     folder.end("finished", stopped_at=f"{trainer.ctx.stage} iteration {trainer.ctx.iteration}")
     return summary
-
-
-def resume_command(argv: list[str], model_path: Path, checkpoint: Path | None) -> str:
-    """The train.py command that continues this run from `checkpoint` (argv as typed, -m and the
-    checkpoint set, --overwrite dropped)."""
-    kept: list[str] = []
-    skip = False
-    for arg in argv:
-        if skip:
-            skip = False
-            continue
-        if arg in ("-m", "--model_path", "--start_checkpoint"):
-            skip = True
-            continue
-        if arg == "--overwrite" or arg.startswith(("--model_path=", "-m=", "--start_checkpoint=")):
-            continue
-        kept.append(arg)
-    tail = ["-m", str(model_path)] + (["--start_checkpoint", str(checkpoint)] if checkpoint else [])
-    return shlex.join(["python", "train.py", *kept, *tail])
-
-
-def run_cli(entry: Callable[[], int]) -> None:
-    """Run `entry`; input errors (bad flags, files, config keys, plugins), OS failures (a full
-    disk, a read-only folder: the path and the reason) and a diverged training (non-finite loss or
-    gradients, named) print one line, exit 2. Ctrl-C prints where the run stopped, its last
-    checkpoint and the command that resumes it, exit 130.
-
-    Set FOURDGS_TRACEBACK=1 to see the full traceback instead.
-    """
-    try:
-        sys.exit(entry())
-    except (ValueError, OSError, FloatingPointError, MemoryError) as exc:
-        if os.environ.get("FOURDGS_TRACEBACK"):
-            raise
-        message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        if isinstance(exc, MemoryError):
-            message = f"out of memory ({message}): lower -r/--resolution or the number of Gaussians"
-        print(f"error: {message}", file=sys.stderr)
-        sys.exit(2)
-    except (TrainingInterrupted, KeyboardInterrupt) as exc:
-        if os.environ.get("FOURDGS_TRACEBACK"):
-            raise
-        print(interrupted_line(exc), file=sys.stderr)
-        sys.exit(130)
-
-
-def interrupted_line(exc: BaseException) -> str:
-    """One line after Ctrl-C: where the run stopped, its last checkpoint, how to resume."""
-    run = current_run()
-    if isinstance(exc, TrainingInterrupted):
-        where, checkpoint = f"at {exc.stage} iteration {exc.iteration}", exc.checkpoint
-    else:
-        where = "before training started" if run is None else f"({run.record.get('stopped_at') or 'before the first save'})"
-        checkpoint = last_checkpoint(run.path) if run is not None else None
-    if run is None:
-        return "interrupted; nothing was saved"
-    if checkpoint is None:
-        return (f"interrupted {where}; no checkpoint in {run.path} (--checkpoint_iterations writes them): "
-                f"rerun with --overwrite to start again")
-    argv = run.command[1:]
-    return f"interrupted {where}; last checkpoint {checkpoint}; resume: {resume_command(argv, run.path, checkpoint)}"
 
 
 @dataclass

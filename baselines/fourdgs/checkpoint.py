@@ -56,10 +56,15 @@ class SaveError(OSError):
     """A file or folder could not be written: the path and the OS reason, in one line."""
 
     def __init__(self, path: str | os.PathLike, cause: BaseException) -> None:
-        os_error = _os_cause(cause)
-        reason = (f"[Errno {os_error.errno}] {os_error.strerror}" if os_error is not None and os_error.strerror
-                  else str(cause).strip().splitlines()[0] if str(cause).strip() else type(cause).__name__)
-        super().__init__(os_error.errno if os_error is not None else None, reason)
+        if isinstance(cause, SaveError):
+            reason, errno = cause.reason, cause.errno
+        else:
+            os_error = _os_cause(cause)
+            errno = os_error.errno if os_error is not None else None
+            text = str(cause).strip()
+            reason = (f"[Errno {os_error.errno}] {os_error.strerror}" if os_error is not None and os_error.strerror
+                      else text.splitlines()[0] if text else type(cause).__name__)
+        super().__init__(errno, reason)
         self.path, self.reason = Path(path), reason
 
     def __str__(self) -> str:
@@ -283,6 +288,10 @@ def save_point_cloud_dir(model: GaussianModel, directory: str | os.PathLike,
         if before_publish is not None:
             before_publish(staging)
         _publish_folder(staging, directory)
+    except SaveError as err:  # name the folder being saved, not its temporary name
+        shutil.rmtree(staging, ignore_errors=True)
+        file = err.path.relative_to(staging) if err.path.is_relative_to(staging) else None
+        raise SaveError(directory / file if file else directory, err) from None
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

@@ -15,16 +15,9 @@ import signal
 import sys
 import threading
 from contextlib import contextmanager
-from pathlib import Path
 from typing import Any, Iterator
 
-
-class TrainingInterrupted(Exception):
-    """Training stopped on request at a consistent point; `checkpoint` resumes it exactly."""
-
-    def __init__(self, stage: str, iteration: int, checkpoint: Path | None) -> None:
-        super().__init__(f"interrupted at {stage} iteration {iteration}")
-        self.stage, self.iteration, self.checkpoint = stage, iteration, checkpoint
+from baselines.run_folder import TrainingInterrupted  # noqa: F401  (raised by the trainer)
 
 
 class StopFlag:

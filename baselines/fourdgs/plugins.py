@@ -58,6 +58,11 @@ class Plugin:
         self.params = dict(params or {})
         self.enabled = frozenset(self.components) - frozenset(self.default_disabled) if enabled is None else enabled
 
+    def min_train_frames(self) -> tuple[int, str]:
+        """(training frames this plugin needs with its enabled components, what needs them); the host
+        checks it right after loading the scene, and names it in an empty-split error."""
+        return 1, ""
+
     def is_enabled(self, component: str) -> bool:
         if component not in self.components:
             raise PluginError(f"plugin {self.name!r} has no component {component!r}; it has {list(self.components)}")

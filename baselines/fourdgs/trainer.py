@@ -41,10 +41,11 @@ from .densification import densification_step
 from .final_stretch import final_stretch
 from .gaussian_model import GaussianModel
 from .hooks import HookRunner, TrainContext
-from .interrupt import StopFlag, TrainingInterrupted, deferred_interrupt
+from .interrupt import StopFlag, deferred_interrupt
 from .plugins import Plugin
 from .renderer import composite_view, prepare_view, render
-from .run_folder import RunFolder, RunIdentity, check_resume_identity, check_upgrade_plugins
+from baselines.run_folder import (RunFolder, RunIdentity, TrainingInterrupted, check_resume_identity,
+                                  check_upgrade_plugins)
 from .run_log import RunLog, StageTimer
 from .sampler import CameraSampler
 

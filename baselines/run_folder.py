@@ -20,6 +20,9 @@ Rules (`check_run_folder`, read-only, raises `RunFolderError` before anything is
 iteration folder and checkpoint, and the run ends "finished", "failed" (with the reason) or
 "interrupted" (with the iteration and the last checkpoint). `render.py` renders only iteration
 folders that the run described by the folder's config saved (`check_saved_iteration`).
+
+This module imports no torch: train.py runs `precheck_model_folder` on a typed `-m` before torch
+loads, so a refused folder costs no start-up time.
 """
 from __future__ import annotations
 
@@ -52,6 +55,14 @@ _current: "RunFolder | None" = None  # the run of this process (for the interrup
 
 class RunFolderError(ValueError):
     """A model folder that cannot take this run (one line: what is there, the ways out)."""
+
+
+class TrainingInterrupted(Exception):
+    """Training stopped on request (Ctrl-C) at a consistent point; `checkpoint` resumes it exactly."""
+
+    def __init__(self, stage: str, iteration: int, checkpoint: Path | None) -> None:
+        super().__init__(f"interrupted at {stage} iteration {iteration}")
+        self.stage, self.iteration, self.checkpoint = stage, iteration, checkpoint
 
 
 @dataclass(frozen=True)
@@ -98,22 +109,35 @@ def _holds_run(folder: Path) -> bool:
 
 
 def _writable_error(folder: Path) -> str | None:
-    """Why `folder` (existing, or to be created) cannot be written, or None."""
-    probe_dir = folder
-    while not probe_dir.exists():
-        if probe_dir.parent == probe_dir:
-            break
-        probe_dir = probe_dir.parent
-    if probe_dir.exists() and not probe_dir.is_dir():
-        return f"{probe_dir} is a file, not a folder"
-    if probe_dir != folder:  # creating it: the first existing ancestor must take a new folder
-        return None if os.access(probe_dir, os.W_OK | os.X_OK) else f"cannot create it: {probe_dir} is not writable"
-    try:  # an existing folder: really write (access() misses read-only mounts under root, ACLs)
+    """Why `folder` (existing, or to be created) cannot be written, or None.
+
+    Really tries (access() says yes to root on a read-only or immutable folder): creates the
+    missing folders and a probe file, then removes all of them again.
+    """
+    missing = []
+    existing = folder
+    while not existing.exists() and existing.parent != existing:
+        missing.append(existing)
+        existing = existing.parent
+    if existing.exists() and not existing.is_dir():
+        return f"{existing} is a file, not a folder"
+    created: list[Path] = []
+    try:
+        for path in reversed(missing):
+            path.mkdir()
+            created.append(path)
         fd, name = tempfile.mkstemp(dir=folder, prefix=".write_probe.")
         os.close(fd)
         os.unlink(name)
     except OSError as err:
-        return f"cannot write into it ({err.strerror or err})"
+        where = f"cannot create {err.filename or folder}" if len(created) < len(missing) else "cannot write into it"
+        return f"{where} ({err.strerror or err})"
+    finally:
+        for path in reversed(created):
+            try:
+                path.rmdir()
+            except OSError:
+                pass
     return None
 
 
@@ -409,3 +433,19 @@ def check_upgrade_plugins(path: Path, mine: RunIdentity) -> None:
         raise RunFolderError(f"--start_checkpoint {path}: that run was trained with --plugin {','.join(missing)}, "
                              f"which this run lacks (it would train on as {mine.describe()}): "
                              f"add --plugin {','.join(missing)}")
+
+
+def precheck_model_folder(argv: list[str]) -> None:
+    """train.py's first check, before torch loads: a typed `-m` that is a file, cannot be written, or
+    (without --overwrite / --start_checkpoint) holds a run. The full check follows the parse."""
+    from baselines.cli_exit import flag_value, has_flag
+
+    model = flag_value(argv, "-m", "--model_path")
+    if not model or has_flag(argv, "-h", "--help"):
+        return
+    if has_flag(argv, "--overwrite") or flag_value(argv, "--start_checkpoint"):
+        problem = _writable_error(Path(model)) if not Path(model).is_file() else "is a file, not a folder"
+        if problem:
+            raise RunFolderError(f"-m {model}: {problem}; choose another -m")
+        return
+    check_run_folder(Path(model), RunIdentity.of([], {}))
