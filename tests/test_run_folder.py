@@ -170,3 +170,19 @@ def test_ctrl_c_stops_with_a_checkpoint_and_the_resume_command(tiny_scene, tmp_p
     train_from_argv(shlex.split(command)[2:])  # the printed command, as typed after "python train.py"
     record = read_run_record(run)
     assert record["state"] == "finished" and "point_cloud/iteration_3" in record["saved"]
+
+
+def test_implicit_output_folder_is_never_reused_and_a_killed_run_is_named(tmp_path):
+    from baselines.run_folder import RunIdentity, check_run_folder, default_model_path
+
+    base = tmp_path / "output" / "scene"
+    assert default_model_path(base) == base  # free: used as is
+    base.mkdir(parents=True)
+    record = {"format": "reflow-4dgs/run", "version": 1, "state": "running", "pid": 2**22 + 12345, "host": "x",
+              "plugins": ["reflow"], "components": {"reflow": ["full_flow"]}, "stopped_at": "saved fine iteration 500"}
+    (base / "run.json").write_text(json.dumps(record))
+    (base / "chkpnt_fine_500.pth").write_bytes(b"")
+    assert default_model_path(base) == tmp_path / "output" / "scene-2"
+    with pytest.raises(RunFolderError, match=r"an unfinished run of --plugin reflow \[full_flow\] \(running, saved fine "
+                                             r"iteration 500\).*--start_checkpoint .*chkpnt_fine_500.pth to continue"):
+        check_run_folder(base, RunIdentity.of([], {}))

@@ -123,14 +123,17 @@ def build_trainer(argv: list[str]) -> Trainer:
         raise ValueError(f"{source}: {len(scene.train_cameras)} training frame(s){_frame_needs(plugins, len(scene.train_cameras))}")
     model_path = folder.path
     folder.commit()
-    write_cfg_args(model_path, args, {"_components": {name: sorted(active) for name, active in components.items()},
-                                       "_dataset_layout": scene.metadata.get("layout_detection"),
-                                       "_default_config": decision.as_dict() if decision else None})
-
-    for plugin in plugins:
-        log.info("plugin %s: components %s", plugin.name, sorted(plugin.enabled) or "none")
-    log.info("threads: %s", thread_policy.last_decision)
-    trainer = Trainer(args, scene, plugins, model_path)
+    try:
+        write_cfg_args(model_path, args, {"_components": {name: sorted(active) for name, active in components.items()},
+                                           "_dataset_layout": scene.metadata.get("layout_detection"),
+                                           "_default_config": decision.as_dict() if decision else None})
+        for plugin in plugins:
+            log.info("plugin %s: components %s", plugin.name, sorted(plugin.enabled) or "none")
+        log.info("threads: %s", thread_policy.last_decision)
+        trainer = Trainer(args, scene, plugins, model_path)  # e.g. --device cuda without CUDA fails here
+    except BaseException:
+        folder.abandon()  # nothing trained yet: the folder goes back to how it was
+        raise
     trainer.run_folder = folder
     return trainer
 
