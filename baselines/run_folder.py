@@ -291,6 +291,7 @@ class RunFolder:
         self.plan, self.path, self.identity, self.command = plan, plan.path, identity, list(command)
         self.record: dict[str, Any] = {}
         self.created = False
+        self.writes = 0  # iteration folders and checkpoints this process saved
 
     def commit(self) -> None:
         """Clear (--overwrite), create the folder and write run.json: from here on the folder is this run's."""
@@ -303,6 +304,10 @@ class RunFolder:
             log.info("--overwrite: cleared %s of the earlier run (%s)", self.path, ", ".join(plan.clear_names) or "nothing")
         self.created = not self.path.exists()
         self.path.mkdir(parents=True, exist_ok=True)
+        stale = remove_stale_staging(self.path)
+        if stale:
+            log.info("removed %d half-written iteration folder(s) a killed run left: %s", len(stale),
+                     ", ".join(p.name for p in stale))
         self._snapshot()
         previous = plan.previous if plan.continuing else None
         foreign = sorted(p.name for p in self.path.iterdir() if p.name != RUN_FILE) if not plan.continuing else []
@@ -362,12 +367,14 @@ class RunFolder:
 
     def record_saved(self, folder: Path, stage: str, iteration: int) -> None:
         rel = str(Path(folder).relative_to(self.path)) if Path(folder).is_relative_to(self.path) else str(folder)
+        self.writes += 1
         if rel not in self.record["saved"]:
             self.record["saved"].append(rel)
         self.record["stopped_at"] = f"saved {stage} iteration {iteration}"
         self._write()
 
     def record_checkpoint(self, path: Path, stage: str, iteration: int) -> None:
+        self.writes += 1
         name = Path(path).name
         if name not in self.record["checkpoints"]:
             self.record["checkpoints"].append(name)
@@ -386,6 +393,18 @@ class RunFolder:
             pass
         if state != "running" and _current is self:
             _current = None if state == "finished" else self
+
+
+def remove_stale_staging(model_path: str | os.PathLike) -> list[Path]:
+    """Delete the temporary iteration folders (`point_cloud/.iteration_N.tmp-*`, `.old-*`) that a
+    killed save left; nothing reads them (checkpoint.save_point_cloud_dir writes them)."""
+    root = Path(model_path) / "point_cloud"
+    if not root.is_dir():
+        return []
+    stale = [p for p in root.glob(".*") if p.is_dir() and (".tmp-" in p.name or ".old-" in p.name)]
+    for path in stale:
+        shutil.rmtree(path, ignore_errors=True)
+    return stale
 
 
 def current_run() -> RunFolder | None:

@@ -90,8 +90,12 @@ def test_resume_must_match_the_checkpoints_plugins(tiny_scene, tmp_path, toy_plu
     with pytest.raises(RunFolderError, match=r"holds a run of --plugin toy_pairs.*continues it as the 4DGS baseline"):
         _train(tiny_scene, toy, "--start_checkpoint", chk, fine=5)
 
-    # continuing the same run in its own folder: allowed, recorded
+    # continuing the same run in its own folder: allowed, recorded; a killed save's leftover goes
+    stale = toy / "point_cloud" / ".iteration_4.tmp-killed"
+    stale.mkdir()
+    (stale / "point_cloud.ply").write_bytes(b"ply\n")
     _train(tiny_scene, toy, "--plugin", "toy_pairs", "--start_checkpoint", chk, fine=5)
+    assert not stale.exists()
     record = read_run_record(toy)
     assert record["state"] == "finished" and "point_cloud/iteration_5" in record["saved"]
     assert "point_cloud/iteration_3" in record["saved"] and len(record["continued"]) == 1

@@ -221,7 +221,7 @@ def train_from_argv(argv: list[str]) -> RunSummary:
                    last_checkpoint=str(stop.checkpoint), resume=resume_command(argv, folder.path, stop.checkpoint))
         raise
     except BaseException as exc:
-        if trainer.ctx.iteration == 0 and not folder.record.get("saved"):
+        if trainer.ctx.iteration == 0 and folder.writes == 0:
             folder.abandon()  # a bad input found before the first iteration: leave the folder as it was
         else:
             state = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"

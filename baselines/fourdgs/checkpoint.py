@@ -316,16 +316,6 @@ def _publish_folder(staging: Path, directory: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def remove_stale_staging(model_path: str | os.PathLike) -> list[Path]:
-    """Delete temporary iteration folders a killed run left in ``<model_path>/point_cloud``."""
-    root = Path(model_path) / "point_cloud"
-    stale = [p for p in root.glob(".*") if p.is_dir() and (".tmp-" in p.name or ".old-" in p.name)] \
-        if root.is_dir() else []
-    for path in stale:
-        shutil.rmtree(path, ignore_errors=True)
-    return stale
-
-
 def _write_point_cloud_files(model: GaussianModel, directory: Path) -> None:
     state = model._deformation.state_dict()
     for key in state:
