@@ -51,7 +51,9 @@ def run_one(scene: str, method: str, out: Path, extra: list[str], threads: int |
         if not (source / "poses_bounds.npy").is_file():
             subprocess.run([sys.executable, "-m", "baselines.synthetic", "--scene", scene, "--out", str(source), "--quiet"], cwd=ROOT,
                            check=True, env=env)
-        cmd = [sys.executable, "train.py", "-s", str(source), "-m", str(run), "--quiet", *METHODS[method], *extra]
+        # no results.json: never trained, or a torn run (killed): --overwrite clears the latter's files
+        cmd = [sys.executable, "train.py", "-s", str(source), "-m", str(run), "--quiet", "--overwrite", *METHODS[method],
+               *extra]
         run.mkdir(parents=True, exist_ok=True)
         with open(run / "suite_train.log", "w") as log:
             subprocess.run(cmd, cwd=ROOT, check=True, env=env, stdout=log, stderr=subprocess.STDOUT)
