@@ -320,7 +320,7 @@ class RunFolder:
             "source_path": self.identity.source_path, "command": self.command,
             "pid": os.getpid(), "host": socket.gethostname(),
             "started": (previous or {}).get("started", now), "updated": now,
-            "saved": list((previous or {}).get("saved", [])),
+            "saved": list((previous or {}).get("saved", self._existing_iterations() if plan.continuing else [])),
             "checkpoints": list((previous or {}).get("checkpoints", [])),
             "foreign": list((previous or {}).get("foreign", foreign)),
         }
@@ -328,6 +328,12 @@ class RunFolder:
             self.record["continued"] = list(previous.get("continued", [])) + [now]
         self._write()
         _current = self
+
+    def _existing_iterations(self) -> list[str]:
+        """Iteration folders of an older run (no run.json) this run continues: its own, so render.py may use them."""
+        root = self.path / "point_cloud"
+        return sorted(str(p.relative_to(self.path)) for p in root.iterdir()
+                      if p.is_dir() and re.fullmatch(r"(coarse_)?iteration_\d+", p.name)) if root.is_dir() else []
 
     def _snapshot(self) -> None:
         """What the folder held before this run wrote anything (for `abandon`)."""

@@ -99,6 +99,12 @@ def test_resume_must_match_the_checkpoints_plugins(tiny_scene, tmp_path, toy_plu
     record = read_run_record(toy)
     assert record["state"] == "finished" and "point_cloud/iteration_5" in record["saved"]
     assert "point_cloud/iteration_3" in record["saved"] and len(record["continued"]) == 1
+    # an older run's folder (no run.json) continued: its iteration folders count as this run's
+    (toy / "run.json").unlink()
+    _train(tiny_scene, toy, "--plugin", "toy_pairs", "--start_checkpoint", str(toy / "chkpnt_fine_3.pth"), fine=6)
+    assert {"point_cloud/iteration_3", "point_cloud/iteration_5", "point_cloud/iteration_6"} <= set(
+        read_run_record(toy)["saved"])
+    render_from_argv(["-m", str(toy), "--iteration", "5", "--skip_video", "--skip_train"])
 
 
 def _failing_torch_save(name: str, monkeypatch) -> None:
