@@ -11,9 +11,7 @@ folder) and Ctrl-C into one line each.
 from __future__ import annotations
 
 import logging
-import os
 import random
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
