@@ -20,3 +20,20 @@ def tiny_scene(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("scenes") / "tiny_balloon"
     simulate(get_scene("balloon", frames=12, width=32, height=32, seed=0), path, progress=False)
     return path
+
+
+@pytest.fixture(scope="session")
+def tiny_reflow_run(tiny_scene, tmp_path_factory) -> Path:
+    """A ReFlow run on `tiny_scene` trained for 10 + 30 iterations (separation with keyframe
+    seeds, so a mixed deformation table and temporal windows; no comp_init: seconds, not minutes)."""
+    from baselines.fourdgs.app import REPO_ROOT, build_trainer
+    from tests.test_trainer import FAST
+
+    out = tmp_path_factory.mktemp("runs") / "tiny_reflow"
+    trainer = build_trainer(["-s", str(tiny_scene), "-m", str(out), "--configs",
+                             str(REPO_ROOT / "arguments/synthetic/default.py"), "--coarse_iterations", "10",
+                             "--iterations", "30", *FAST, "--plugin", "reflow", "--flow_vis_every", "0",
+                             "--disable", "comp_init"])
+    trainer.train()
+    trainer.run_log.close()
+    return out
