@@ -125,7 +125,7 @@ class ViewerApp:
     def _build_gui(self, server: viser.ViserServer) -> None:
         first = self.runs[0]
         start_time = float(first.train_cameras[0].time) if first.train_cameras else 0.0
-        server.gui.configure_theme(control_layout="collapsible", dark_mode=True, show_share_button=False)
+        server.gui.configure_theme(dark_mode=True, show_share_button=False)
         server.gui.add_markdown("  \n".join(("**A:** " if len(self.runs) > 1 and i == 0 else "**B:** " if i else "")
                                             + run.summary() for i, run in enumerate(self.runs)))
         with server.gui.add_folder("Time"):
@@ -177,6 +177,7 @@ class ViewerApp:
             frustum = server.scene.add_camera_frustum(
                 f"/cameras/{'test' if is_test else 'train'}/{camera.image_name}", fov=vertical_fov(camera.K, camera.height),
                 aspect=camera.width / camera.height, scale=scale, wxyz=wxyz, position=position,
+                thickness=1.5, thickness_units="screen",
                 color=TEST_COLOR if is_test else TRAIN_COLOR)
             frustum.on_click(lambda event, cam=camera: self.jump(event.client, cam))
             self.frustums.append(frustum)
