@@ -124,6 +124,19 @@ class HeadlessChromium:
                 raise TimeoutError(f"the page did not become ready within {timeout:.0f} s ({blank_reason(picture)})")
             time.sleep(interval)
 
+    def click_close_buttons(self, text: str) -> bool:
+        """Click the close button of the element showing `text` (e.g. a notification); True if found."""
+        script = f"""(() => {{
+          const leaves = Array.from(document.querySelectorAll('*'))
+            .filter(e => e.children.length === 0 && e.textContent.includes({json.dumps(text)}));
+          for (let e = leaves[0], i = 0; e && i < 8; e = e.parentElement, i++) {{
+            const button = e.querySelector('button');
+            if (button) {{ button.click(); return true; }}
+          }}
+          return false;
+        }})()"""
+        return bool(self.call("Runtime.evaluate", expression=script, returnByValue=True)["result"].get("value"))
+
     def close(self) -> None:
         sock = getattr(self, "socket", None)
         if sock is not None:

@@ -84,7 +84,12 @@ def export_tracks(loaded, args: argparse.Namespace) -> list[Path]:
     tracks = compute_tracks(model, times, rows)
     tracks.set_views(trainer.train_cameras, trainer.test_cameras)
     written = [save_tracks(args.out / "tracks.npz", tracks)]
-    what = "Gaussians" if args.all_gaussians else "dynamic Gaussians"
+    if args.all_gaussians:
+        what = "every Gaussian"
+    elif tracks.num_tracks == model.num_gaussians:
+        what = "every Gaussian: the run deforms all of them, as 4DGS does"
+    else:
+        what = f"the dynamic Gaussians, of {model.num_gaussians}"
     print(f"[export] {tracks.num_tracks} tracks ({what}) x {len(times)} times -> {written[0]}")
     if args.no_video:
         return written

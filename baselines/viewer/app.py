@@ -69,7 +69,8 @@ def label(picture: np.ndarray, lines: Sequence[str]) -> np.ndarray:
 class ViewerApp:
     """See the module docstring."""
 
-    def __init__(self, runs: Sequence[ViewerRun], port: int = 8080, max_side: int = 512) -> None:
+    def __init__(self, runs: Sequence[ViewerRun], port: int = 8080, max_side: int = 512, mode: str = "RGB",
+                 start_time: float | None = None, frustums: bool = True) -> None:
         if not 1 <= len(runs) <= 2:
             raise ValueError(f"the viewer shows one or two runs side by side, got {len(runs)}")
         self.runs = list(runs)
@@ -79,6 +80,9 @@ class ViewerApp:
         for run in self.runs:
             for name, fn in run.modes.items():
                 self.mode_fns.setdefault(name, fn)
+        if mode not in self.mode_fns:
+            raise ValueError(f"--mode {mode!r}: these runs have the modes {', '.join(map(repr, self.mode_fns))}")
+        self.initial_mode, self.initial_time, self.initial_frustums = mode, start_time, frustums
         self.dt = min(run.dt for run in self.runs)
         self.server: viser.ViserServer | None = None
         self.renderers: dict[int, ClientRenderer] = {}
@@ -125,6 +129,7 @@ class ViewerApp:
     def _build_gui(self, server: viser.ViserServer) -> None:
         first = self.runs[0]
         start_time = float(first.train_cameras[0].time) if first.train_cameras else 0.0
+        start_time = start_time if self.initial_time is None else self.initial_time
         server.gui.configure_theme(dark_mode=True, show_share_button=False)
         server.gui.add_markdown("  \n".join(("**A:** " if len(self.runs) > 1 and i == 0 else "**B:** " if i else "")
                                             + run.summary() for i, run in enumerate(self.runs)))
@@ -132,14 +137,14 @@ class ViewerApp:
             self.time = server.gui.add_slider("time", min=0.0, max=1.0, step=self.dt, initial_value=start_time)
             self.play = server.gui.add_button("Play", icon=viser.Icon.PLAYER_PLAY)
         with server.gui.add_folder("Render"):
-            self.mode = server.gui.add_dropdown("mode", tuple(self.mode_fns), initial_value="RGB")
+            self.mode = server.gui.add_dropdown("mode", tuple(self.mode_fns), initial_value=self.initial_mode)
             self.selection = server.gui.add_dropdown("Gaussians", SELECTIONS, initial_value="both",
                                                      visible=any(run.has_split for run in self.runs),
                                                      hint="static / dynamic split of the deformation table")
             self.max_side = server.gui.add_slider("max resolution", min=64, max=2048, step=32,
                                                   initial_value=self.initial_max_side,
                                                   hint="longer side of the still picture, in pixels")
-            self.show_cameras = server.gui.add_checkbox("camera frustums", initial_value=True)
+            self.show_cameras = server.gui.add_checkbox("camera frustums", initial_value=self.initial_frustums)
         self.stats = server.gui.add_markdown("waiting for the first frame")
 
         def refresh(_) -> None:
@@ -178,7 +183,7 @@ class ViewerApp:
                 f"/cameras/{'test' if is_test else 'train'}/{camera.image_name}", fov=vertical_fov(camera.K, camera.height),
                 aspect=camera.width / camera.height, scale=scale, wxyz=wxyz, position=position,
                 thickness=1.5, thickness_units="screen",
-                color=TEST_COLOR if is_test else TRAIN_COLOR)
+                color=TEST_COLOR if is_test else TRAIN_COLOR, visible=self.initial_frustums)
             frustum.on_click(lambda event, cam=camera: self.jump(event.client, cam))
             self.frustums.append(frustum)
         first = cameras[0][0]
