@@ -5,8 +5,9 @@
 The full flow of the viewer's camera from t to t + dt (one video frame; t - dt at the end of
 the time span), with the camera held still: the image motion of the scene itself, rendered
 exactly as training renders it (one pass of `flow_features` channels, DESIGN.md section 5).
-Colours are the Middlebury wheel (white = still); each picture saturates at its own 99th
-percentile speed, given in the caption. Pixels with alpha < 0.5 are black.
+Colours are the Middlebury wheel (white = still); a picture saturates at the viewer's colour
+scale (px) when one is set, else at its own 99th percentile speed; the caption gives it. Pixels
+with alpha < 0.5 are black.
 """
 from __future__ import annotations
 
@@ -36,9 +37,12 @@ def full_flow_mode(frame: ViewFrame) -> tuple[np.ndarray, str]:
     flow, valid = full_flow(maps, alpha, MIN_ALPHA)
     flow_np, valid_np = flow.cpu().numpy(), valid.cpu().numpy()
     speeds = np.linalg.norm(flow_np[valid_np], axis=-1)
-    scale = max(float(np.percentile(speeds, 99)) if speeds.size else 0.0, MIN_SCALE)
+    own = max(float(np.percentile(speeds, 99)) if speeds.size else 0.0, MIN_SCALE)
+    scale = frame.color_scale if frame.color_scale > 0 else own
     arrow = "t+dt" if forward else "t-dt"
-    return flow_to_color(flow_np, scale, valid_np), f"flow t->{arrow}: white = still, full colour = {scale:.2f} px"
+    fastest = float(speeds.max()) if speeds.size else 0.0
+    return (flow_to_color(flow_np, scale, valid_np),
+            f"flow t->{arrow}: full colour = {scale:.2f} px (fastest {fastest:.2f} px)")
 
 
 VIEWER_MODES = {"full flow": full_flow_mode}

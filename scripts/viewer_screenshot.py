@@ -33,6 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", default="1280x800", help="browser window WxH")
     parser.add_argument("--max_res", type=int, default=768)
     parser.add_argument("--no_frustums", action="store_true")
+    parser.add_argument("--color_scale", type=float, default=0.0)
     parser.add_argument("--settle", type=float, default=3.0, help="seconds to wait after the first frame")
     args = parser.parse_args(argv)
     width, height = (int(v) for v in args.size.lower().split("x"))
@@ -40,6 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     view_args += ["--port", "0", "--max_res", str(args.max_res), "--mode", args.mode]
     view_args += ["--time", str(args.time)] if args.time is not None else []
     view_args += ["--no_frustums"] if args.no_frustums else []
+    view_args += ["--color_scale", str(args.color_scale)]
     proc = ViewerProcess(*view_args)
     try:
         url = proc.wait_for(r"open (http://127\.0\.0\.1:\d+) ").group(1)

@@ -2,6 +2,7 @@
 the server in a subprocess (page over HTTP, bad input) and a real headless Chromium."""
 from __future__ import annotations
 
+import contextlib
 import os
 import queue
 import re
@@ -63,7 +64,9 @@ def test_pictures_of_every_mode_and_selection(run):
     # static Gaussians never move: their full flow (camera held still) is white wherever it is valid
     flow, caption = run.render(cam.viewmat, cam.K, cam.width, cam.height, cam.time, "full flow", "static only")
     covered = flow.max(-1) > 0
-    assert covered.mean() > 0.3 and (flow[covered] >= WHITE - 1).all() and "0.05 px" in caption
+    assert covered.mean() > 0.3 and (flow[covered] >= WHITE - 1).all() and "full colour = 0.05 px" in caption
+    fixed = run.render(cam.viewmat, cam.K, cam.width, cam.height, cam.time, "full flow", color_scale=2.0)[1]
+    assert "full colour = 2.00 px" in fixed  # one scale for pictures side by side
     alpha_static = run.render(cam.viewmat, cam.K, cam.width, cam.height, cam.time, "alpha", "static only")[0]
     alpha_both = run.render(cam.viewmat, cam.K, cam.width, cam.height, cam.time, "alpha", "both")[0]
     assert (alpha_both.astype(int) >= alpha_static.astype(int) - 1).all() and (alpha_both > alpha_static + 2).any()
@@ -85,6 +88,14 @@ def test_two_runs_side_by_side_share_the_camera(run):
         expected, _ = run.render(cam.viewmat, intrinsics(vertical_fov(cam.K, cam.height), half, 40), half, 40, cam.time)
         below_label = slice(20, None)
         assert np.array_equal(left[below_label], expected[below_label])
+        # a click on a frustum moves the clicking browser's camera there and the time to its frame
+        target = run.test_cameras[-1]
+        client.atomic = contextlib.nullcontext
+        app.jump(client, target)
+        torch.testing.assert_close(view_from_pose(client.camera.wxyz, client.camera.position), target.viewmat,
+                                   atol=1e-5, rtol=0)
+        assert client.camera.fov == pytest.approx(vertical_fov(target.K, target.height))
+        assert app.time.value == pytest.approx(target.time)
     finally:
         app.stop()
 

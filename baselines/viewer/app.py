@@ -11,7 +11,9 @@ or off. The training cameras (grey) and test cameras (orange) are drawn as wiref
 frustums; a click on one moves the clicking browser's camera there and the time to its frame.
 With two runs the picture is split: run A left, run B right, the same camera (each half keeps
 the browser's vertical field of view), named in the picture; a mode only one run's plugins
-provide (ReFlow's flow beside a baseline) is rendered for both with that plugin's renderer.
+provide (ReFlow's flow beside a baseline) is rendered for both with that plugin's renderer, and
+"colour scale" gives both flow pictures one saturation speed. Mode captions (depth range, flow
+scale) are shown under the frame statistics.
 """
 from __future__ import annotations
 
@@ -52,17 +54,12 @@ def check_port_free(port: int, host: str = HOST) -> None:
         probe.close()
 
 
-def label(picture: np.ndarray, lines: Sequence[str]) -> np.ndarray:
-    """Write text lines at the top left of a picture (white on a dark outline), in place."""
-    scale = max(0.35, picture.shape[0] / 900.0)
-    thickness = max(1, int(round(scale * 1.5)))
-    y = int(20 * scale) + 4
-    for line in lines:
-        if not line:
-            continue
-        for colour, width in (((0, 0, 0), thickness + 2), ((255, 255, 255), thickness)):
-            cv2.putText(picture, line, (6, y), cv2.FONT_HERSHEY_SIMPLEX, scale, colour, width, cv2.LINE_AA)
-        y += int(26 * scale) + 2
+def label(picture: np.ndarray, text: str) -> np.ndarray:
+    """Write a run's name at the top left of its picture (white on a dark outline), in place."""
+    scale = max(0.3, picture.shape[0] / 700.0)
+    y = int(18 * scale) + 3
+    for colour, width in (((0, 0, 0), 3), ((255, 255, 255), 1)):
+        cv2.putText(picture, text, (4, y), cv2.FONT_HERSHEY_SIMPLEX, scale, colour, width, cv2.LINE_AA)
     return picture
 
 
@@ -70,7 +67,7 @@ class ViewerApp:
     """See the module docstring."""
 
     def __init__(self, runs: Sequence[ViewerRun], port: int = 8080, max_side: int = 512, mode: str = "RGB",
-                 start_time: float | None = None, frustums: bool = True) -> None:
+                 start_time: float | None = None, frustums: bool = True, color_scale: float = 0.0) -> None:
         if not 1 <= len(runs) <= 2:
             raise ValueError(f"the viewer shows one or two runs side by side, got {len(runs)}")
         self.runs = list(runs)
@@ -83,6 +80,8 @@ class ViewerApp:
         if mode not in self.mode_fns:
             raise ValueError(f"--mode {mode!r}: these runs have the modes {', '.join(map(repr, self.mode_fns))}")
         self.initial_mode, self.initial_time, self.initial_frustums = mode, start_time, frustums
+        self.initial_color_scale = color_scale
+        self.captions: dict[str, str] = {}
         self.dt = min(run.dt for run in self.runs)
         self.server: viser.ViserServer | None = None
         self.renderers: dict[int, ClientRenderer] = {}
@@ -101,10 +100,11 @@ class ViewerApp:
         panels = []
         for run in self.runs:
             picture, caption = run.render(viewmat, K, panel_width, height, time_value, mode, selection,
-                                          mode_fn=None if mode in run.modes else self.mode_fns[mode])
+                                          mode_fn=None if mode in run.modes else self.mode_fns[mode],
+                                          color_scale=float(self.color_scale.value))
+            self.captions[run.name] = caption
             picture = np.ascontiguousarray(picture)
-            lines = [run.name if count > 1 else "", caption]
-            panels.append(label(picture, lines))
+            panels.append(label(picture, run.name) if count > 1 else picture)
             panels.append(np.full((height, SEPARATOR, 3), 40, np.uint8))
         return np.concatenate(panels[:-1], axis=1)
 
@@ -144,13 +144,16 @@ class ViewerApp:
             self.max_side = server.gui.add_slider("max resolution", min=64, max=2048, step=32,
                                                   initial_value=self.initial_max_side,
                                                   hint="longer side of the still picture, in pixels")
+            self.color_scale = server.gui.add_number("colour scale", initial_value=self.initial_color_scale,
+                                                     min=0.0, step=0.1,
+                                                     hint="speed (px) at full colour in the flow mode; 0 = each picture's own")
             self.show_cameras = server.gui.add_checkbox("camera frustums", initial_value=self.initial_frustums)
         self.stats = server.gui.add_markdown("waiting for the first frame")
 
         def refresh(_) -> None:
             self._request_all(moving=False)
 
-        for handle in (self.time, self.mode, self.selection, self.max_side):
+        for handle in (self.time, self.mode, self.selection, self.max_side, self.color_scale):
             handle.on_update(refresh)
 
         @self.play.on_click
@@ -251,8 +254,10 @@ class ViewerApp:
             return
         last = records[-1]
         ms = np.median([r.seconds for r in records]) * 1e3
-        self.stats.content = (f"last frame {last.width}x{last.height} ({'full' if last.full else 'moving'}), "
-                              f"median render {ms:.0f} ms ({1e3 / max(ms, 1e-3):.1f} fps)")
+        captions = [f"{name}: {text}" if len(self.runs) > 1 else text
+                    for name, text in list(self.captions.items()) if text]
+        self.stats.content = "  \n".join([f"last frame {last.width}x{last.height} ({'full' if last.full else 'moving'}), "
+                                          f"median render {ms:.0f} ms ({1e3 / max(ms, 1e-3):.1f} fps)", *captions])
 
     # ------------------------------------------------------------------ life cycle
     def wait(self) -> None:

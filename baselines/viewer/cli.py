@@ -29,6 +29,8 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     parser.add_argument("--port", type=int, default=8080, help="port on 127.0.0.1 (0: any free port)")
     parser.add_argument("--max_res", type=int, default=512, help="longer side of the still picture, in pixels")
     parser.add_argument("--mode", default="RGB", help="initial render mode (RGB, depth, alpha; ReFlow runs: 'full flow')")
+    parser.add_argument("--color_scale", type=float, default=0.0,
+                        help="flow speed (px) at full colour, one scale for both runs (0: each picture its own)")
     parser.add_argument("--no_frustums", action="store_true", help="start with the camera frustums hidden")
     parser.add_argument("--time", type=float, default=None, help="initial time in [0, 1] (default: the first training view's)")
     args, rest = parser.parse_known_args(argv)
@@ -36,6 +38,8 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
         raise ValueError(f"-m given {len(args.model_path)} times: the viewer shows one run or two side by side")
     if not 64 <= args.max_res <= 4096:
         raise ValueError(f"--max_res must be in [64, 4096], got {args.max_res}")
+    if not args.color_scale >= 0.0:
+        raise ValueError(f"--color_scale must be >= 0, got {args.color_scale}")
     if args.time is not None and not 0.0 <= args.time <= 1.0:
         raise ValueError(f"--time must be in [0, 1], got {args.time}")
     return args, rest
@@ -51,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     runs = [ViewerRun.load(path, render_argv) for path in args.model_path]
     loaded = time.perf_counter() - started
     app = ViewerApp(runs, port=args.port, max_side=args.max_res, mode=args.mode, start_time=args.time,
-                    frustums=not args.no_frustums)
+                    frustums=not args.no_frustums, color_scale=args.color_scale)
     url = app.start()
     for run in runs:
         print(f"[view] {run.summary()} on {run.device}", flush=True)

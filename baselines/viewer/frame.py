@@ -34,6 +34,8 @@ class ViewFrame:
         time: the frame's time; dt: one frame of the run's video (1 / (frames - 1)).
         viewmat: [4, 4] world-to-camera; K: [3, 3] intrinsics for width x height.
         background: [3] RGB in [0, 1]; sh_degree: the model's active SH degree.
+        color_scale: the magnitude at which modes that colour a magnitude saturate (the flow's
+            speed in px): one scale for two runs side by side; 0 = each picture its own.
     """
 
     deform: Callable[[float], GaussianState]
@@ -46,6 +48,7 @@ class ViewFrame:
     backend: str
     background: Tensor
     sh_degree: int
+    color_scale: float = 0.0
 
     @property
     def state(self) -> GaussianState:

@@ -93,7 +93,8 @@ class ViewerRun:
 
     @torch.no_grad()
     def render(self, viewmat: Tensor, K: Tensor, width: int, height: int, time: float, mode: str = "RGB",
-               selection: str = "both", mode_fn: ViewerMode | None = None) -> tuple[np.ndarray, str]:
+               selection: str = "both", mode_fn: ViewerMode | None = None,
+               color_scale: float = 0.0) -> tuple[np.ndarray, str]:
         """[H, W, 3] uint8 RGB picture and a caption of the run from a camera at `time`.
 
         `mode_fn` renders a mode this run's plugins do not provide (another run's, side by side).
@@ -107,5 +108,6 @@ class ViewerRun:
             frame = ViewFrame(deform=lambda t: self.states(t, selection), time=float(time), dt=self.dt,
                               viewmat=viewmat.to(self.device, torch.float32), K=K.to(self.device, torch.float32),
                               width=int(width), height=int(height), backend=self.backend,
-                              background=self.background, sh_degree=self.model.active_sh_degree)
+                              background=self.background, sh_degree=self.model.active_sh_degree,
+                              color_scale=float(color_scale))
             return fn(frame)
