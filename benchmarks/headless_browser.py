@@ -4,7 +4,8 @@
         png = browser.screenshot()                                 # PNG bytes
         picture = browser.wait_for_picture(is_ready, timeout=60)   # [H, W, 3] uint8 RGB
 
-Used by the viewer's browser test, `benchmarks/viewer.py` and the README's screenshot. Only the
+Used by the viewer's browser test, `benchmarks/viewer.py` and the README's screenshot, with
+`ViewerProcess` (view.py in a subprocess, its output read line by line). Only the
 standard library and `websockets` (a requirement of viser) are needed; no browser download.
 Chromium runs with a fresh profile and without any background network traffic or GPU:
 `--headless --no-sandbox --disable-gpu --disable-quic --no-first-run
@@ -15,9 +16,14 @@ from __future__ import annotations
 
 import base64
 import json
+import os
+import queue
+import re
 import shutil
 import subprocess
+import sys
 import tempfile
+import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -27,6 +33,7 @@ import cv2
 import numpy as np
 from websockets.sync.client import connect
 
+ROOT = Path(__file__).resolve().parents[1]
 FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
          "--disable-background-networking", "--disable-component-update", "--disable-sync",
          "--enable-unsafe-swiftshader", "--hide-scrollbars", "--mute-audio")
@@ -155,3 +162,39 @@ class HeadlessChromium:
 
     def __exit__(self, *_) -> None:
         self.close()
+
+
+class ViewerProcess:
+    """`python view.py ARGS` with its output read line by line in a thread."""
+
+    def __init__(self, *args: str) -> None:
+        env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+        self.process = subprocess.Popen([sys.executable, "view.py", *args], cwd=ROOT, env=env, text=True,
+                                        stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        self.lines: queue.Queue[str] = queue.Queue()
+        self.output: list[str] = []
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        for line in self.process.stdout:
+            self.lines.put(line)
+
+    def wait_for(self, pattern: str, timeout: float = 120.0) -> re.Match:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                line = self.lines.get(timeout=0.2)
+            except queue.Empty:
+                if self.process.poll() is not None and self.lines.empty():
+                    break
+                continue
+            self.output.append(line)
+            found = re.search(pattern, line)
+            if found:
+                return found
+        raise AssertionError(f"no line matching {pattern!r}; output so far:\n{''.join(self.output)}")
+
+    def stop(self) -> None:
+        if self.process.poll() is None:
+            self.process.terminate()
+            self.process.wait(timeout=20)

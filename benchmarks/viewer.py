@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import statistics
 import sys
 import time
@@ -68,8 +67,7 @@ def frame_rows(run: ViewerRun, res: int, frames: int) -> list[tuple[str, str, fl
 
 def browser_row(paths: list[str], res: int) -> dict[str, float]:
     """Seconds to "ready", to the first frame sent and to a screenshot showing it (view.py + Chromium)."""
-    from benchmarks.headless_browser import HeadlessChromium, blank_reason
-    from tests.test_viewer import ViewerProcess
+    from benchmarks.headless_browser import HeadlessChromium, ViewerProcess, blank_reason
 
     start = time.perf_counter()
     args = [a for p in paths for a in ("-m", p)]

@@ -2,7 +2,7 @@
 """A screenshot of the web viewer in headless Chromium (the README's pictures).
 
     python scripts/viewer_screenshot.py -m output/skating_reflow -o docs/images/viewer_reflow.png \\
-        [-m RUN_B] [--mode "full flow"] [--time 0.5] [--size 1280x800] [--max_res 768] [--no_frustums]
+        [-m RUN_B] [--mode "full flow"] [--time 0.5] [--size 1280x800] [--max_res 512] [--no_frustums]
 
 Starts `view.py` on a free port, opens it in Debian's headless Chromium (benchmarks/
 headless_browser.py), waits for the first frame, closes viser's "software WebGL" notice, waits
@@ -20,8 +20,7 @@ import cv2
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.headless_browser import HeadlessChromium, blank_reason  # noqa: E402
-from tests.test_viewer import ViewerProcess  # noqa: E402
+from benchmarks.headless_browser import HeadlessChromium, ViewerProcess, blank_reason  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -31,7 +30,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mode", default="RGB")
     parser.add_argument("--time", type=float, default=None)
     parser.add_argument("--size", default="1280x800", help="browser window WxH")
-    parser.add_argument("--max_res", type=int, default=768)
+    parser.add_argument("--max_res", type=int, default=512)
     parser.add_argument("--no_frustums", action="store_true")
     parser.add_argument("--color_scale", type=float, default=0.0)
     parser.add_argument("--settle", type=float, default=3.0, help="seconds to wait after the first frame")

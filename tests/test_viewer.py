@@ -3,31 +3,23 @@ the server in a subprocess (page over HTTP, bad input) and a real headless Chrom
 from __future__ import annotations
 
 import contextlib
-import os
-import queue
-import re
 import socket
-import subprocess
-import sys
-import threading
-import time
 import types
 import urllib.request
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 import torch
 
-from baselines.fourdgs.app import REPO_ROOT, run_cli
+from baselines.fourdgs.app import run_cli
 from baselines.fourdgs.evaluate import to_uint8
 from baselines.fourdgs.renderer import render
 from baselines.viewer.app import ViewerApp
 from baselines.viewer.camera import image_size, intrinsics, pose_from_view, vertical_fov, view_from_pose
 from baselines.viewer.cli import main as viewer_main
 from baselines.viewer.runs import ViewerRun
-from benchmarks.headless_browser import HeadlessChromium, blank_reason, chromium_binary
+from benchmarks.headless_browser import HeadlessChromium, ViewerProcess, blank_reason, chromium_binary
 
 WHITE = 255
 
@@ -101,42 +93,6 @@ def test_two_runs_side_by_side_share_the_camera(run):
 
 
 # ---------------------------------------------------------------------- the server in a subprocess
-class ViewerProcess:
-    """`python view.py ARGS` with its output read line by line in a thread."""
-
-    def __init__(self, *args: str) -> None:
-        env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
-        self.process = subprocess.Popen([sys.executable, "view.py", *args], cwd=REPO_ROOT, env=env, text=True,
-                                        stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-        self.lines: queue.Queue[str] = queue.Queue()
-        self.output: list[str] = []
-        threading.Thread(target=self._read, daemon=True).start()
-
-    def _read(self) -> None:
-        for line in self.process.stdout:
-            self.lines.put(line)
-
-    def wait_for(self, pattern: str, timeout: float = 120.0) -> re.Match:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            try:
-                line = self.lines.get(timeout=0.2)
-            except queue.Empty:
-                if self.process.poll() is not None and self.lines.empty():
-                    break
-                continue
-            self.output.append(line)
-            found = re.search(pattern, line)
-            if found:
-                return found
-        raise AssertionError(f"no line matching {pattern!r}; output so far:\n{''.join(self.output)}")
-
-    def stop(self) -> None:
-        if self.process.poll() is None:
-            self.process.terminate()
-            self.process.wait(timeout=20)
-
-
 @pytest.fixture(scope="module")
 def viewer(tiny_reflow_run):
     proc = ViewerProcess("-m", str(tiny_reflow_run), "--port", "0", "--max_res", "256")
