@@ -98,13 +98,13 @@ class ViewerApp:
         panel_width = max(8, (width - SEPARATOR * (count - 1)) // count)
         K = intrinsics(cam.fov, panel_width, height)
         panels = []
-        for run in self.runs:
+        for letter, run in zip("AB", self.runs):
             picture, caption = run.render(viewmat, K, panel_width, height, time_value, mode, selection,
                                           mode_fn=None if mode in run.modes else self.mode_fns[mode],
                                           color_scale=float(self.color_scale.value))
-            self.captions[run.name] = caption
+            self.captions[f"{letter}: {run.name}" if count > 1 else run.name] = caption
             picture = np.ascontiguousarray(picture)
-            panels.append(label(picture, run.name) if count > 1 else picture)
+            panels.append(label(picture, f"{letter}: {run.name}") if count > 1 else picture)
             panels.append(np.full((height, SEPARATOR, 3), 40, np.uint8))
         return np.concatenate(panels[:-1], axis=1)
 
