@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import socket
+import time
 import types
 import urllib.request
 
@@ -18,6 +19,7 @@ from baselines.fourdgs.renderer import render
 from baselines.viewer.app import ViewerApp
 from baselines.viewer.camera import image_size, intrinsics, pose_from_view, vertical_fov, view_from_pose
 from baselines.viewer.cli import main as viewer_main
+from baselines.viewer.render_loop import ClientRenderer
 from baselines.viewer.runs import ViewerRun
 from benchmarks.headless_browser import HeadlessChromium, ViewerProcess, blank_reason, chromium_binary
 
@@ -76,9 +78,10 @@ def test_two_runs_side_by_side_share_the_camera(run):
         picture = app.draw(client, 84, 40)
         half = (84 - 4) // 2
         left, right = picture[:, :half], picture[:, half + 4:]
-        assert picture.shape == (40, 84, 3) and np.array_equal(left, right)
+        below_label = slice(20, None)  # "A: name" and "B: name" are written in the top rows
+        assert picture.shape == (40, 84, 3) and np.array_equal(left[below_label], right[below_label])
+        assert not np.array_equal(left[:20], right[:20])
         expected, _ = run.render(cam.viewmat, intrinsics(vertical_fov(cam.K, cam.height), half, 40), half, 40, cam.time)
-        below_label = slice(20, None)
         assert np.array_equal(left[below_label], expected[below_label])
         # a click on a frustum moves the clicking browser's camera there and the time to its frame
         target = run.test_cameras[-1]
@@ -88,8 +91,38 @@ def test_two_runs_side_by_side_share_the_camera(run):
                                    atol=1e-5, rtol=0)
         assert client.camera.fov == pytest.approx(vertical_fov(target.K, target.height))
         assert app.time.value == pytest.approx(target.time)
+        app.playing = True  # Play advances the time one frame at a time
+        assert _wait_until(lambda: app.time.value != pytest.approx(target.time))
+        app.playing = False
     finally:
         app.stop()
+
+
+def _wait_until(condition, timeout: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.02)
+    return condition()
+
+
+def test_low_resolution_while_moving_then_full_once_still():
+    sent = []
+    client = types.SimpleNamespace(
+        client_id=7, camera=types.SimpleNamespace(aspect=4 / 3, update_timestamp=1.0),
+        scene=types.SimpleNamespace(set_background_image=lambda image, **_: sent.append(image.shape[:2])))
+    renderer = ClientRenderer(client, lambda w, h: np.zeros((h, w, 3), np.uint8), max_side=lambda: 512,
+                              playing=lambda: False)
+    renderer.start()
+    try:
+        renderer.request(moving=True)
+        assert _wait_until(lambda: len(sent) >= 2)
+        assert sent[0] == (144, 192), "while moving, before any speed is known: a small frame"
+        assert sent[-1] == (384, 512), "once still: the full size"
+        assert renderer.first_frame_s is not None and renderer.records[-1].full
+    finally:
+        renderer.stop()
 
 
 # ---------------------------------------------------------------------- the server in a subprocess
