@@ -10,7 +10,8 @@ standard library and `websockets` (a requirement of viser) are needed; no browse
 Chromium runs with a fresh profile and without any background network traffic or GPU:
 `--headless --no-sandbox --disable-gpu --disable-quic --no-first-run
 --disable-background-networking --disable-component-update --disable-sync`, plus
-`--enable-unsafe-swiftshader`, the software WebGL that viser's three.js canvas needs without a GPU.
+`--enable-unsafe-swiftshader`, the software WebGL that viser's three.js canvas needs without a GPU,
+and `--disable-dev-shm-usage` (containers often have a tiny /dev/shm).
 """
 from __future__ import annotations
 
@@ -36,7 +37,7 @@ from websockets.sync.client import connect
 ROOT = Path(__file__).resolve().parents[1]
 FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
          "--disable-background-networking", "--disable-component-update", "--disable-sync",
-         "--enable-unsafe-swiftshader", "--hide-scrollbars", "--mute-audio")
+         "--enable-unsafe-swiftshader", "--disable-dev-shm-usage", "--hide-scrollbars", "--mute-audio")
 
 
 def chromium_binary() -> str | None:
