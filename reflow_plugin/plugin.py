@@ -469,6 +469,12 @@ class ReFlowPlugin(Plugin):
         tmp.write_text(json.dumps(data, indent=1, sort_keys=True, default=str))
         tmp.replace(path)
 
+    def viewer_modes(self) -> dict[str, Any]:
+        """The web viewer's "full flow" mode (reflow_plugin/viewer_modes.py)."""
+        from .viewer_modes import VIEWER_MODES
+
+        return dict(VIEWER_MODES)
+
     # ------------------------------------------------------------------ persistence
     def state_dict(self) -> dict[str, Any]:
         return {"sampler": self.sampler.state_dict() if self.sampler is not None else None,

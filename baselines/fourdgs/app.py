@@ -241,6 +241,20 @@ class LoadedRun:
     iteration: int
 
 
+def require_run(path: str | os.PathLike) -> Path:
+    """`path` if it is a trained model directory (a `point_cloud/iteration_N/point_cloud.ply`), else
+    ValueError naming it: one line, before any loading (view.py, python -m baselines.export)."""
+    from .checkpoint import PLY_FILE, find_latest_iteration, point_cloud_dir
+
+    path = Path(path)
+    if not path.is_dir():
+        raise ValueError(f"{path}: no such run folder (-m/--model_path)")
+    iteration = find_latest_iteration(path)
+    if iteration is None or not (point_cloud_dir(path, iteration) / PLY_FILE).is_file():
+        raise ValueError(f"{path} is not a trained run: no point_cloud/iteration_N/{PLY_FILE} (train.py -m {path} writes one)")
+    return path
+
+
 def load_run(argv: list[str]) -> LoadedRun:
     """Load `-m MODEL [--iteration N]` (render.py's flags) with its saved configuration and plugins.
 

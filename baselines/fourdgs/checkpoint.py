@@ -39,6 +39,7 @@ from torch import Tensor
 from baselines.fourdgs.deformation import check_deformation_state
 from baselines.fourdgs.gaussian_model import GaussianModel
 from baselines.fourdgs.numpy_globals import allow_numpy_scalars
+from baselines.fourdgs.state import GaussianState
 
 PLY_FILE = "point_cloud.ply"
 DEFORMATION_FILE = "deformation.pth"
@@ -186,27 +187,34 @@ def ply_attribute_names(num_rest_coefficients: int) -> list[str]:
 
 
 def gaussians_to_ply(model: GaussianModel) -> PlyData:
-    """The model's Gaussians as a binary little-endian 3DGS PLY.
+    """The model's stored (canonical) Gaussians as a binary little-endian 3DGS PLY."""
+    return state_to_ply(model.canonical_state())
 
-    SH features are written channel-major (all R coefficients, then G, then B), i.e. the
-    transposed [N, 3, K] layout flattened, as 3DGS/4DGS do.
+
+def state_to_ply(state: GaussianState) -> PlyData:
+    """N Gaussians (pre-activation, e.g. ``model.deform(t, "fine")``) as a binary little-endian 3DGS PLY.
+
+    The layout Inria's 3DGS and its viewers read: x y z, nx ny nz (zeros), f_dc_0..2, f_rest_*,
+    opacity (logit), scale_0..2 (log), rot_0..3 (w first, unnormalised). SH features are written
+    channel-major (all R coefficients, then G, then B), i.e. the transposed [N, 3, K] layout
+    flattened, as 3DGS/4DGS do.
     """
-    count = model.num_gaussians
+    count = state.num_gaussians
 
     def flat(t: Tensor) -> np.ndarray:
         return t.detach().float().cpu().reshape(count, -1).numpy()
 
     columns = [
-        flat(model._xyz),
+        flat(state.means),
         np.zeros((count, 3), dtype=np.float32),
-        flat(model._features_dc.transpose(1, 2)),
-        flat(model._features_rest.transpose(1, 2)),
-        flat(model._opacity),
-        flat(model._scaling),
-        flat(model._rotation),
+        flat(state.shs[:, :1].transpose(1, 2)),
+        flat(state.shs[:, 1:].transpose(1, 2)),
+        flat(state.opacity_logits),
+        flat(state.log_scales),
+        flat(state.rotations),
     ]
     values = np.ascontiguousarray(np.concatenate(columns, axis=1), dtype="<f4")
-    names = ply_attribute_names(model._features_rest.shape[1])
+    names = ply_attribute_names(state.shs.shape[1] - 1)
     records = values.view(np.dtype([(n, "<f4") for n in names])).reshape(count)
     return PlyData([PlyElement.describe(records, "vertex")], byte_order="<")
 

@@ -151,6 +151,12 @@ class Plugin:
     def on_load(self, ctx: TrainContext, point_cloud_dir: Any) -> None:
         """A point_cloud/iteration_N directory was loaded into ctx.model (resume or upgrade)."""
 
+    # --- viewer -----------------------------------------------------------------------------
+    def viewer_modes(self) -> dict[str, Callable[..., Any]]:
+        """Extra render modes of the web viewer (view.py): {name: fn(frame) -> (picture, caption)},
+        frame a `baselines.viewer.frame.ViewFrame`, picture [H, W, 3] uint8 RGB, caption a short str."""
+        return {}
+
 
 _LOCAL_REGISTRY: dict[str, Callable[[], type[Plugin]]] = {}
 
