@@ -62,10 +62,10 @@ CAPTURES: dict[str, Capture] = {c.name: c for c in (
             commit="574cc77ad278bad582f470e5382624e01f8769a7", folder="demo_data/lady-running",
             what="DAVIS lady-running, 65 JPG frames 854x480, hand-held camera following a runner",
             prepare_flags=("--size", "320")),
-    Capture(name="pips_dog", family="clip", repo="aharley/pips",
-            commit="a05a120bd3896eeb1ab28346c00e78543ff83df5", folder="demo_images",
-            what="PIPs demo clip, 101 JPG frames 640x360, a dog running on grass, camera tracking it",
-            prepare_flags=("--size", "320", "--max-frames", "50")),
+    Capture(name="nvidia_balloon1_colmap", family="clip", repo="xyi1023/ShanghaiTech-CS172-Final-Project",
+            commit="60c41bd1a306341bddac115cbc31c8243ea92618", folder="Balloon1/images",
+            what="the same 12 Balloon1 frames without poses or disparity, through prepare (COLMAP cameras, flow path)",
+            prepare_flags=("--size", "240")),
 )}
 
 

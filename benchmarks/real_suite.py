@@ -1,7 +1,7 @@
 """Baseline vs ReFlow on real captures: held-out PSNR/SSIM, PSNR inside the (estimated) motion masks.
 
-    python benchmarks/real_suite.py [--captures nvidia_balloon1,davis_lady_running,pips_dog]
-                                    [--data data/real] [--out output/real] [--jobs 1]
+    python benchmarks/real_suite.py [--captures nvidia_balloon1,nvidia_balloon1_colmap,davis_lady_running]
+                                    [--methods baseline,reflow] [--data data/real] [--out output/real] [--jobs 1]
                                     [--coarse_iterations 300] [--iterations 2000] [--seed 0]
                                     [--images docs/images] [-- extra train.py flags]
     python benchmarks/real_suite.py --fetch-instructions      # where each capture comes from
@@ -13,7 +13,8 @@ training with one error that prints how to fetch it. Each (capture, method) is a
 `train.py` run in `OUT/<capture>/<method>` with the family's default config (no `--configs`:
 `arguments/nvidia/*` for NVIDIA, `arguments/hypernerf/*` for prepared clips), `--eval` (every 8th
 frame held out), the same schedule and `--seed` for both methods; ReFlow runs with its defaults
-(`--plugin reflow`). A run is done when `real_done.json` exists (written after train.py
+(`--plugin reflow`); `--methods ...,reflow_flow_provider` adds a diagnosis row, ReFlow with its
+canonical space built from triangulated optical flow instead of the dataset's `disp/`. A run is done when `real_done.json` exists (written after train.py
 succeeded, with the command and the code's commit); a folder without it is a torn run and is
 redone, and a folder trained with another command stops the suite (use a fresh `--out` after
 changing the schedule or the code you want to measure).
@@ -48,7 +49,13 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.real_captures import (DEFAULT_DATA, Capture, CaptureError, dataset_dir,  # noqa: E402
                                       fetch_instructions, require_ready, select, setup)
 
-METHODS = {"baseline": [], "reflow": ["--plugin", "reflow"]}
+METHODS = {
+    "baseline": [],
+    "reflow": ["--plugin", "reflow"],
+    # diagnosis (not run by default): the canonical space from triangulated optical flow instead of disp/
+    "reflow_flow_provider": ["--plugin", "reflow", "--canonical_provider", "flow"],
+}
+DEFAULT_METHODS = ("baseline", "reflow")
 DONE_FILE = "real_done.json"
 COLUMNS = ("PSNR", "SSIM", "PSNR-mask", "PSNR-outside", "mask %", "train_s", "code")
 
@@ -117,7 +124,8 @@ def eval_masks(capture: Capture, data_root: Path, out: Path) -> list[np.ndarray]
     tests = scene.test_cameras
     if all(c.mask is not None for c in tests):
         return [c.mask.cpu().numpy() > 0.5 for c in tests]
-    cached = [cv2.imread(str(folder / f"{c.image_name}.png"), cv2.IMREAD_GRAYSCALE) for c in tests]
+    paths = [folder / f"{c.image_name}.png" for c in tests]
+    cached = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) if p.is_file() else None for p in paths]
     if all(m is not None and m.shape == (c.height, c.width) for m, c in zip(cached, tests)):
         return [m > 127 for m in cached]
     frames = sorted(scene.train_cameras + tests, key=lambda c: (c.time, c.frame_index))
@@ -176,7 +184,7 @@ def summarise(run: Path, masks: list[np.ndarray]) -> dict:
 
 
 def side_by_side(capture: Capture, runs: dict[str, Path], masks: list[np.ndarray], images: Path) -> Path | None:
-    """GT | baseline | ReFlow for the two held-out views with the most masked pixels."""
+    """GT | one column per method for the two held-out views with the most masked pixels."""
     if len(runs) < 2 or not masks:
         return None
     sys.path.insert(0, str(ROOT / "scripts"))
@@ -204,7 +212,7 @@ def table(rows: dict[str, dict[str, dict]]) -> str:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--captures", help="comma list of registry names (default: all)")
-    parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--methods", default=",".join(DEFAULT_METHODS), help=f"comma list of {', '.join(METHODS)}")
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder holding the captures")
     parser.add_argument("--out", type=Path, default=ROOT / "output" / "real")
     parser.add_argument("--images", type=Path, default=ROOT / "docs" / "images", help="where real_<capture>.jpg go")
