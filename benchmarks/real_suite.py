@@ -58,6 +58,7 @@ METHODS = {
 DEFAULT_METHODS = ("baseline", "reflow")
 DONE_FILE = "real_done.json"
 COLUMNS = ("PSNR", "SSIM", "PSNR-mask", "PSNR-outside", "mask %", "train_s", "code")
+NEAR_PLANE = 0.01  # the rasterizer's default near plane (baselines/render/api.py)
 
 
 class SuiteError(RuntimeError):
@@ -114,13 +115,18 @@ def latest_test_dir(run: Path) -> Path:
     return dirs[-1]
 
 
-def eval_masks(capture: Capture, data_root: Path, out: Path) -> list[np.ndarray]:
-    """[H, W] bool motion mask per held-out view (test order), dataset masks or estimated (cached)."""
+def load_capture(capture: Capture, data_root: Path):
+    """The capture's SceneInfo at the benchmark's resolution, with the family's hold-out."""
     from baselines.data.loader import load_scene
+
+    return load_scene(dataset_dir(capture, data_root), resolution=capture.resolution, eval=True)
+
+
+def eval_masks(capture: Capture, scene, out: Path) -> list[np.ndarray]:
+    """[H, W] bool motion mask per held-out view (test order), dataset masks or estimated (cached)."""
     from baselines.data.motion_masks import estimate_motion_masks
 
     folder = out / capture.name / "eval_masks"
-    scene = load_scene(dataset_dir(capture, data_root), resolution=capture.resolution, eval=True)
     tests = scene.test_cameras
     if all(c.mask is not None for c in tests):
         return [c.mask.cpu().numpy() > 0.5 for c in tests]
@@ -137,6 +143,55 @@ def eval_masks(capture: Capture, data_root: Path, out: Path) -> list[np.ndarray]
     for name, mask in by_name.items():
         cv2.imwrite(str(folder / f"{name}.png"), mask.astype(np.uint8) * 255)
     return [by_name[c.image_name] for c in tests]
+
+
+def _ply_points(path: Path) -> np.ndarray:
+    from plyfile import PlyData
+
+    vertex = PlyData.read(str(path))["vertex"]
+    return np.stack([vertex["x"], vertex["y"], vertex["z"]], 1).astype(np.float64)
+
+
+def camera_depths(points: np.ndarray, camera) -> tuple[np.ndarray, np.ndarray]:
+    """(depth z [P], inside [P] bool: in front of the camera and projecting inside the image)."""
+    viewmat, K = camera.viewmat.double().cpu().numpy(), camera.K.double().cpu().numpy()
+    cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = cam[:, 2]
+    safe = np.where(np.abs(z) > 1e-12, z, 1e-12)
+    u, v = K[0, 0] * cam[:, 0] / safe + K[0, 2], K[1, 1] * cam[:, 1] / safe + K[1, 2]
+    return z, (z > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+
+
+def canonical_check(run: Path, scene) -> dict | None:
+    """Where ReFlow's initial clouds (`reflow/static.ply`, `dynamic.ply`) lie, against the scene.
+
+    static depth / scene depth: median depth of the static points that project into the training
+    views over the scene's reference depth (the dataset's points, else sqrt(near * far) of its
+    bounds); static in view: mean over training cameras of the fraction of static points inside
+    the image and beyond the rasterizer's near plane (what can render at all); dynamic spread: std of the dynamic points over the scene depth
+    (about 0 = collapsed to one position). None for a run without those files."""
+    static_file, dynamic_file = run / "reflow" / "static.ply", run / "reflow" / "dynamic.ply"
+    if not static_file.is_file():
+        return None
+    static = _ply_points(static_file)
+    cams = scene.train_cameras
+    if scene.point_cloud is not None and len(scene.point_cloud.points):
+        reference = float(np.median(np.concatenate(
+            [z[inside] for z, inside in (camera_depths(scene.point_cloud.points.astype(np.float64), c) for c in cams)])))
+        source = "dataset points"
+    elif scene.near_far is not None:
+        reference, source = float(np.sqrt(scene.near_far[0] * scene.near_far[1])), "bounds"
+    else:
+        return None
+    seen = [camera_depths(static, c) for c in cams]
+    inside_depths = np.concatenate([z[inside] for z, inside in seen]) if seen else np.zeros(0)
+    check = {"reference_depth": reference, "reference": source,
+             "static depth / scene depth": float(np.median(inside_depths)) / reference if len(inside_depths) else None,
+             "static in view %": 100.0 * float(np.mean([(inside & (z > NEAR_PLANE)).mean() for z, inside in seen]))}
+    if dynamic_file.is_file():
+        dynamic = _ply_points(dynamic_file)
+        check["dynamic spread"] = float(np.linalg.norm(dynamic.std(0))) / reference if len(dynamic) else None
+    return check
 
 
 def region_psnr(render: np.ndarray, gt: np.ndarray, region: np.ndarray) -> float | None:
@@ -168,7 +223,7 @@ def masked_metrics(run: Path, masks: list[np.ndarray]) -> dict[str, float | None
             "PSNR-outside": float(np.mean(outside)) if outside else None}
 
 
-def summarise(run: Path, masks: list[np.ndarray]) -> dict:
+def summarise(run: Path, masks: list[np.ndarray], scene) -> dict:
     """The figures of one finished run."""
     results = json.loads((run / "results.json").read_text())
     key = max((k for k in results if k.startswith("ours_")), key=lambda k: int(k.split("_")[1]))
@@ -180,6 +235,7 @@ def summarise(run: Path, masks: list[np.ndarray]) -> dict:
            "code": json.loads((run / DONE_FILE).read_text()).get("code")}
     if "reflow" in results:
         row["reflow"] = results["reflow"]
+        row["canonical_check"] = canonical_check(run, scene)
     return row
 
 
@@ -207,6 +263,24 @@ def table(rows: dict[str, dict[str, dict]]) -> str:
             cells = " | ".join("-" if values.get(c) is None else fmt.get(c, "{:.2f}").format(values[c]) for c in COLUMNS)
             lines.append(f"| {name} | {method} | {cells} |")
     return "\n".join(lines)
+
+
+CHECK_COLUMNS = ("static depth / scene depth", "static in view %", "dynamic spread")
+
+
+def canonical_table(rows: dict[str, dict[str, dict]]) -> str:
+    """Markdown: where each ReFlow run's initial clouds lie (canonical_check), '' when none has them."""
+    lines = []
+    for name, methods in rows.items():
+        for method, values in methods.items():
+            check = values.get("canonical_check")
+            if check:
+                cells = " | ".join("-" if check.get(c) is None else f"{check[c]:.3g}" for c in CHECK_COLUMNS)
+                lines.append(f"| {name} | {method} | {cells} | {check['reference']} ({check['reference_depth']:.3g}) |")
+    if not lines:
+        return ""
+    head = ["| capture | method | " + " | ".join(CHECK_COLUMNS) + " | scene depth from |", "|---|---|" + "---:|" * 3 + "---|"]
+    return "\n".join(head + lines)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -258,12 +332,16 @@ def main(argv: list[str] | None = None) -> int:
         runs = list(pool.map(lambda job: run_one(job[0], job[1], args.data, args.out, schedule, extra, threads), jobs))
     rows: dict[str, dict[str, dict]] = {}
     for capture in captures:
-        masks = eval_masks(capture, args.data, args.out)
+        scene = load_capture(capture, args.data)
+        masks = eval_masks(capture, scene, args.out)
         mine = {m: r for (c, m), r in zip(jobs, runs) if c is capture}
-        rows[capture.name] = {m: summarise(r, masks) for m, r in mine.items()}
+        rows[capture.name] = {m: summarise(r, masks, scene) for m, r in mine.items()}
         if not args.no_images:
             side_by_side(capture, mine, masks, args.images)
     text = table(rows)
+    checks = canonical_table(rows)
+    if checks:
+        text += "\n\nReFlow's initial clouds (reflow/static.ply, dynamic.ply) against the scene:\n\n" + checks
     print(text)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "real_suite.md").write_text(text + "\n")

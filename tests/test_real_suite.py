@@ -148,3 +148,40 @@ def test_run_one_redoes_a_torn_run_and_refuses_a_run_of_another_command(tmp_path
     assert len(calls) == 1                                 # done: reused, not retrained
     with pytest.raises(real_suite.SuiteError, match="another command"):
         real_suite.run_one(capture, "baseline", tmp_path, tmp_path / "out", dict(schedule, iterations=6), [], 1)
+
+
+def _write_ply(path: Path, points: np.ndarray) -> None:
+    from plyfile import PlyData, PlyElement
+
+    records = np.zeros(len(points), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+    for k, name in enumerate("xyz"):
+        records[name] = points[:, k]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    PlyData([PlyElement.describe(records, "vertex")]).write(str(path))
+
+
+def test_canonical_check_tells_a_cloud_at_scene_depth_from_one_collapsed_at_the_camera(tmp_path):
+    import torch
+    from types import SimpleNamespace
+
+    from baselines.data import Camera
+
+    K = torch.tensor([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
+    camera = Camera(uid=0, image_name="0", width=64, height=48, K=K, viewmat=torch.eye(4), time=0.0)
+    scene = SimpleNamespace(train_cameras=[camera], point_cloud=None, near_far=(40.0, 60.0))
+    rng = np.random.default_rng(0)
+    at_depth = np.column_stack([rng.uniform(-10, 10, 500), rng.uniform(-8, 8, 500), rng.uniform(45, 52, 500)])
+    _write_ply(tmp_path / "good" / "reflow" / "static.ply", at_depth)
+    _write_ply(tmp_path / "good" / "reflow" / "dynamic.ply", at_depth[:50])
+    good = real_suite.canonical_check(tmp_path / "good", scene)
+    assert good["reference"] == "bounds" and good["reference_depth"] == pytest.approx(math.sqrt(40 * 60))
+    assert good["static depth / scene depth"] == pytest.approx(np.median(at_depth[:, 2]) / math.sqrt(2400), rel=0.05)
+    assert good["static in view %"] > 90 and good["dynamic spread"] > 0.05
+    collapsed = at_depth * 1e-5                             # 1 / raw disparity: everything at the camera centre
+    _write_ply(tmp_path / "bad" / "reflow" / "static.ply", collapsed)
+    _write_ply(tmp_path / "bad" / "reflow" / "dynamic.ply", np.repeat(collapsed[:1], 50, 0))
+    bad = real_suite.canonical_check(tmp_path / "bad", scene)
+    assert bad["static depth / scene depth"] < 1e-4
+    assert bad["static in view %"] == 0.0                   # in front of the camera but before the near plane
+    assert bad["dynamic spread"] == pytest.approx(0.0, abs=1e-9)
+    assert real_suite.canonical_check(tmp_path / "baseline_run", scene) is None
