@@ -65,12 +65,17 @@ class SuiteError(RuntimeError):
     """A run folder cannot be reused as it is."""
 
 
+TRAINING_CODE = (".", ":!benchmarks", ":!tests", ":!docs", ":!README.md")  # what a run's figures depend on
+
+
 def code_version() -> str:
-    """Short commit of this checkout, with '+dirty' when tracked files differ from it."""
-    head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short=10", "HEAD"], capture_output=True, text=True)
-    if head.returncode != 0:
+    """Short hash of the last commit that changed the training code (everything but benchmarks/,
+    tests/, docs/ and the README), with '+dirty' when that code differs from it."""
+    head = subprocess.run(["git", "-C", str(ROOT), "log", "-1", "--format=%h", "--abbrev=10", "--", *TRAINING_CODE],
+                          capture_output=True, text=True)
+    if head.returncode != 0 or not head.stdout.strip():
         return "unknown"
-    dirty = subprocess.run(["git", "-C", str(ROOT), "diff", "--quiet", "HEAD", "--", "."], capture_output=True)
+    dirty = subprocess.run(["git", "-C", str(ROOT), "diff", "--quiet", "HEAD", "--", *TRAINING_CODE], capture_output=True)
     return head.stdout.strip() + ("+dirty" if dirty.returncode else "")
 
 
@@ -96,6 +101,7 @@ def run_one(capture: Capture, method: str, data_root: Path, out: Path, schedule:
     if run.exists():  # torn: a killed or failed earlier attempt
         shutil.rmtree(run)
     run.mkdir(parents=True)
+    code = code_version()  # the code that trains, before anyone edits the checkout
     env = dict(os.environ, OMP_NUM_THREADS=str(threads))
     with open(run.parent / f"{method}_train.log", "w") as log:
         result = subprocess.run([sys.executable, *command], cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
@@ -103,7 +109,7 @@ def run_one(capture: Capture, method: str, data_root: Path, out: Path, schedule:
         tail = (run.parent / f"{method}_train.log").read_text().strip().splitlines()[-3:]
         raise SuiteError(f"{capture.name}/{method}: train.py exited {result.returncode}: " + " | ".join(tail))
     tmp = run / (DONE_FILE + ".tmp")
-    tmp.write_text(json.dumps({"command": command, "code": code_version()}, indent=1))
+    tmp.write_text(json.dumps({"command": command, "code": code}, indent=1))
     tmp.replace(done)
     return run
 
