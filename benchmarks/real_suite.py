@@ -98,13 +98,19 @@ def run_one(capture: Capture, method: str, data_root: Path, out: Path, schedule:
             raise SuiteError(f"{run} was trained with another command ({' '.join(stored.get('command', []))}); "
                              "use a fresh --out or delete that folder")
         return run
+    lock = run.parent / f"{method}.lock"
+    owner = _live_owner(lock)
+    if owner is not None:
+        raise SuiteError(f"{run} is being trained by process {owner} (another real_suite.py); wait for it")
     if run.exists():  # torn: a killed or failed earlier attempt
         shutil.rmtree(run)
     run.mkdir(parents=True)
+    lock.write_text(str(os.getpid()))
     code = code_version()  # the code that trains, before anyone edits the checkout
     env = dict(os.environ, OMP_NUM_THREADS=str(threads))
     with open(run.parent / f"{method}_train.log", "w") as log:
         result = subprocess.run([sys.executable, *command], cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
+    lock.unlink(missing_ok=True)
     if result.returncode != 0:
         tail = (run.parent / f"{method}_train.log").read_text().strip().splitlines()[-3:]
         raise SuiteError(f"{capture.name}/{method}: train.py exited {result.returncode}: " + " | ".join(tail))
@@ -112,6 +118,16 @@ def run_one(capture: Capture, method: str, data_root: Path, out: Path, schedule:
     tmp.write_text(json.dumps({"command": command, "code": code}, indent=1))
     tmp.replace(done)
     return run
+
+
+def _live_owner(lock: Path) -> int | None:
+    """The pid recorded in `lock` when that process still runs, else None (a stale lock)."""
+    try:
+        pid = int(lock.read_text().strip())
+        os.kill(pid, 0)
+    except (OSError, ValueError):
+        return None
+    return pid
 
 
 def latest_test_dir(run: Path) -> Path:

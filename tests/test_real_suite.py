@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 import math
 import re
 import shutil
@@ -185,3 +186,16 @@ def test_canonical_check_tells_a_cloud_at_scene_depth_from_one_collapsed_at_the_
     assert bad["static in view %"] == 0.0                   # in front of the camera but before the near plane
     assert bad["dynamic spread"] == pytest.approx(0.0, abs=1e-9)
     assert real_suite.canonical_check(tmp_path / "baseline_run", scene) is None
+
+
+def test_run_one_leaves_a_run_that_another_process_is_training_alone(tmp_path, monkeypatch):
+    capture = CAPTURES["nvidia_balloon1"]
+    running = tmp_path / "out" / capture.name / "reflow"
+    running.mkdir(parents=True)
+    (running / "train_log.jsonl").write_text("")
+    (running.parent / "reflow.lock").write_text(str(os.getppid()))   # a live process: our parent
+    monkeypatch.setattr(real_suite.subprocess, "run", lambda *a, **k: pytest.fail("must not train"))
+    with pytest.raises(real_suite.SuiteError, match="being trained by process"):
+        real_suite.run_one(capture, "reflow", tmp_path, tmp_path / "out", {"coarse_iterations": 1, "iterations": 2,
+                                                                           "seed": 0}, [], 1)
+    assert (running / "train_log.jsonl").exists()
