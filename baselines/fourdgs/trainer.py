@@ -42,6 +42,7 @@ from .plugins import Plugin
 from .renderer import composite_view, prepare_view, render
 from .run_log import RunLog, StageTimer
 from .sampler import CameraSampler
+from .stall_guard import StallGuard
 
 log = logging.getLogger(__name__)
 STAGES = ("coarse", "fine")
@@ -120,6 +121,7 @@ class Trainer:
         self.timer = StageTimer()
         self.train_seconds = 0.0  # wall / CPU seconds spent in training steps (this process)
         self.train_cpu_seconds = 0.0
+        self.stall_guard = StallGuard(0)  # armed by train() for a run that starts from its initial cloud
 
     # ------------------------------------------------------------------ set-up
     def build(self) -> None:
@@ -164,6 +166,8 @@ class Trainer:
         resume = self._resume_point()
         if self.ctx.model is None:
             self.build()
+        if resume is None:  # a fresh run: stop early if it cannot learn (stall_guard.py)
+            self.stall_guard = StallGuard(self.opt.stall_iterations)
         for stage in STAGES:
             if resume is not None and STAGES.index(stage) < STAGES.index(resume["stage"]):
                 continue
@@ -255,6 +259,7 @@ class Trainer:
             loss=float(ctx.loss.detach()), num_gaussians=model.num_gaussians,
             psnr=float(torch.stack([psnr(v.image.detach(), v.camera.image) for v in ctx.views]).mean()),
         )
+        self.stall_guard.observe(ctx)
         self.run_log.iteration(ctx, every=self.run.log_every)
 
     def _check_finite_gradients(self) -> None:
