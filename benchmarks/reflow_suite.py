@@ -20,7 +20,8 @@ with a quiet single run).
 world units, no motion masks, so ReFlow estimates them), in `data/synthetic_real/<scene>` and
 `output/suite_real/` by default; PSNR-dynamic still uses the exact masks (gt/motion_masks).
 `reflow_no_align` is the paper's "w/o align" (`--no-canonical_align`). `--schedule half` is the
-ablation's half schedule (300 coarse + 1000 fine iterations, decay and densification scaled).
+ablation's half schedule (300 coarse + 1000 fine iterations, decay and densification scaled),
+`quarter` half of that again (150 + 500).
 """
 from __future__ import annotations
 
@@ -48,6 +49,8 @@ SCHEDULES = {
     "full": [],
     "half": ["--iterations", "1000", "--position_lr_max_steps", "1000", "--densify_until_iter", "750",
              "--test_iterations", "500", "1000", "--save_iterations", "1000"],
+    "quarter": ["--coarse_iterations", "150", "--iterations", "500", "--position_lr_max_steps", "500",
+                "--densify_until_iter", "375", "--test_iterations", "250", "500", "--save_iterations", "500"],
 }
 PRIORS = {"exact": ("synthetic", []), "real": ("synthetic_real", ["--priors", "real", "--scene_scale"])}
 

@@ -109,19 +109,19 @@ def fit_disparity(disparity: np.ndarray, depth: np.ndarray, iterations: int = 10
     if len(d) < MIN_POINTS:
         return None
     rng = np.random.default_rng(seed)
-    best, best_cost = None, np.inf
-    for _ in range(SAMPLES):  # least median of squares: robust to half the pairs being wrong
-        a, b = rng.choice(len(d), 2, replace=False)
-        det = d[a] * z[a] * z[b] - z[a] * d[b] * z[b]
-        if abs(det) < 1e-12 * max(z[a] * z[b], 1e-30) * max(abs(d[a]) + abs(d[b]), 1e-30):
-            continue
-        s = (z[b] - z[a]) / det
-        o = (d[a] * z[a] - d[b] * z[b]) / det
-        if not s > 0:
-            continue
-        cost = float(np.median(np.abs(_residual(d, z, s, o))))
-        if cost < best_cost:
-            best, best_cost = (float(s), float(o)), cost
+    a, b = rng.integers(0, len(d), (2, SAMPLES))  # least median of squares over 2-point samples, vectorised
+    a, b = a[a != b], b[a != b]
+    det = d[a] * z[a] * z[b] - z[a] * d[b] * z[b]
+    good = np.abs(det) > 1e-12 * z[a] * z[b] * (np.abs(d[a]) + np.abs(d[b]) + 1e-30)
+    det = np.where(good, det, 1.0)
+    s_all, o_all = (z[b] - z[a]) / det, (d[a] * z[a] - d[b] * z[b]) / det
+    good &= s_all > 0
+    best = None
+    if good.any():
+        s_all, o_all = s_all[good], o_all[good]
+        cost = np.median(np.abs((s_all[:, None] * d[None] + o_all[:, None]) * z[None] - 1.0), axis=1)
+        k = int(np.argmin(cost))
+        best = (float(s_all[k]), float(o_all[k]))
     if best is None:
         best = _weighted_solve(d, z, np.ones(len(d)))
         if best is None or not best[0] > 0:

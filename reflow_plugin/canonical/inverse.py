@@ -1,6 +1,6 @@
 """Anchored alignment in inverse depth: monocular disparity at the scene's scale, cameras fixed.
 
-    states, report = align_inverse(provider, frames, weights, fits, anchors, window=4, iterations=100)
+    states, report = align_inverse(provider, frames, weights, fits, anchors, window=4, iterations=50)
 
 A monocular network's disparity d_n is inverse depth up to a per-frame affine map,
 1 / z = s_n d_n + o_n. The DUSt3R-style alignment (alignment.py) has a per-frame DEPTH scale and
@@ -75,7 +75,7 @@ def _pairs(frames: Sequence[int], window: int) -> list[tuple[int, int]]:
 
 def align_inverse(provider: PointmapProvider, frames: Sequence[int], weights: Mapping[int, np.ndarray],
                   fits: Mapping[int, FrameFit], anchors: Mapping[int, tuple[np.ndarray, np.ndarray]],
-                  window: int = 4, iterations: int = 100, lr: float = 0.01, progress: bool = False,
+                  window: int = 4, iterations: int = 50, lr: float = 0.02, progress: bool = False,
                   device: torch.device | str = "cpu", seed: int = 0) -> tuple[dict[int, FrameState], dict]:
     """Per-frame inverse-depth maps of `frames` (camera indices sorted by time).
 

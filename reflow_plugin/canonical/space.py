@@ -58,7 +58,7 @@ class CanonicalOptions:
     max_side: int = 64  # alignment grid: every stride-th pixel, stride = ceil(longest side / max_side)
     shift: bool = False  # optimise a per-frame depth shift besides the scale (alignment.align_frames)
     refine: bool = True  # inverse-depth path: joint refinement after the per-frame fits (inverse.py)
-    inverse_iterations: int = 100  # Adam steps of that refinement
+    inverse_iterations: int = 50  # Adam steps of that refinement
     mask_dynamic: bool = True  # pixels in the motion masks carry no weight in the alignment
     dynamic_points: int = 20_000
     depth_source: str = "disparity"  # depth provider: disparity (dataset) | gt (simulator gt/depth)
