@@ -8,7 +8,7 @@
 Each (scene, method) is an ordinary `train.py` run in `OUT/<scene>/<method>` with the scene's
 synthetic config (`arguments/synthetic/default.py`, ReFlow: `arguments/synthetic/reflow.py`), the
 full schedule; `reflow_no_comp_init` is ReFlow without its complete canonical space (part 1
-alone). A run whose `results.json` exists is reused (a killed sweep resumes). The baseline's
+alone). A run whose `results.json` holds its final metrics is reused (a killed sweep resumes). The baseline's
 flow is measured afterwards with `python -m reflow_plugin.evaluate` (the same renderer ReFlow's
 own evaluation uses). Prints one Markdown table (per scene and mean) and writes it with the raw
 figures to `OUT/suite.md` / `OUT/suite.json`. `--jobs 2` runs two trainings at once with one
@@ -60,6 +60,12 @@ def _latest(results: dict) -> tuple[str, dict]:
     return key, results[key]
 
 
+def finished(run: Path) -> bool:
+    """Whether the run wrote its final metrics (a plugin writes results.json early, at set-up)."""
+    path = run / "results.json"
+    return path.is_file() and any(k.startswith("ours_") for k in json.loads(path.read_text()))
+
+
 def scene_source(scene: str, priors: str = "exact", scene_scale: float = 50.0) -> tuple[Path, list[str]]:
     """(data folder, simulator flags) of a suite scene in the given priors mode."""
     folder, flags = PRIORS[priors]
@@ -73,7 +79,7 @@ def run_one(scene: str, method: str, out: Path, extra: list[str], threads: int |
     env = dict(os.environ)
     if threads:
         env["OMP_NUM_THREADS"] = str(threads)
-    if not (run / "results.json").is_file():
+    if not finished(run):
         source, flags = scene_source(scene, priors, scene_scale)
         if not (source / "poses_bounds.npy").is_file():
             subprocess.run([sys.executable, "-m", "baselines.synthetic", "--scene", scene, "--out", str(source), "--quiet",
