@@ -220,8 +220,9 @@ class ReFlowPlugin(Plugin):
 
         The cloud is checked before training (canonical/check.py: views, depth against the host's
         sparse points or the bounds, dynamic spread). A failing check logs one warning and falls
-        back: the per-frame fits to the sparse points (no joint refinement, no raw pointmaps), else
-        None (the caller uses the host's cloud + part 1's seeds). Recorded in info["canonical_check"].
+        back: the per-frame fits of the dataset's disparity to the sparse points, else to the
+        bounds (no joint refinement, no raw pointmaps), else None (the caller uses the host's cloud
+        + part 1's seeds). Recorded in info["canonical_check"].
         """
         from .canonical import build_canonical_space, options_from_params
         from .canonical.check import check_initial_cloud
@@ -230,8 +231,11 @@ class ReFlowPlugin(Plugin):
         options.device = str(ctx.device)
         anchors = ctx.point_cloud.points if ctx.point_cloud_source in ("dataset", "triangulated") else None
         attempts = [("canonical space", options)]
-        if anchors is not None and (not options.align or options.refine):
-            attempts.append(("per-frame fits to the sparse points",
+        cameras = ctx.train_cameras
+        disparity = options.provider in ("auto", "depth") and all(c.disparity is not None for c in cameras)
+        bounds = all(c.extras.get("near_far") is not None for c in cameras)
+        if disparity and (anchors is not None or bounds) and (not options.align or options.refine):
+            attempts.append((f"per-frame fits to the {'sparse points' if anchors is not None else 'bounds'}",
                              replace(options, align=True, refine=False)))
         failures = []
         for what, opts in attempts:

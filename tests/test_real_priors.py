@@ -174,3 +174,26 @@ def test_stall_guard_stays_quiet_on_a_healthy_run(tiny_scene, tmp_path):
     """The guard's whole window on a healthy scene (dynamic) and with every Gaussian static."""
     summary = train_from_argv(base_argv(tiny_scene, tmp_path / "run", 60, 60, "--stall_iterations", "100"))
     assert summary.trainer.stall_guard.seen == 100 and not summary.trainer.stall_guard.armed
+
+
+def test_wo_align_on_monocular_disparity_fails_the_check_and_falls_back(real_scene, tmp_path, caplog):
+    """--no-canonical_align: the raw pointmaps (1 / disparity) fail the check; ONE warning names the
+    measurement and the run starts from the per-frame fits (here to the bounds), near the true depth."""
+    from baselines.fourdgs.app import build_trainer
+
+    argv = base_argv(real_scene, tmp_path / "run", 1, 1, "--plugin", "reflow", "--flow_vis_every", "0",
+                     "--no-canonical_align", "--label_source", "none")  # no masks: the check alone
+    trainer = build_trainer(argv)
+    with caplog.at_level("WARNING", logger="reflow"):
+        trainer.build()
+    plugin = trainer.hooks.plugins[0]
+    check = plugin.info["canonical_check"]
+    # this small scene triangulates fewer than the host's 100 points, so the evidence is the bounds
+    assert check["passed"] and check["used"] == "per-frame fits to the bounds"
+    assert len(check["failures"]) == 1 and "near/far bounds" in check["failures"][0]
+    warnings = [r for r in caplog.records if r.levelname == "WARNING" and "initial cloud check" in r.getMessage()]
+    assert len(warnings) == 1
+    assert plugin.info["canonical"]["alignment"]["mode"] == "inverse depth (per-frame fits only)"
+    static = trainer.ctx.point_cloud.points[~plugin.labels]
+    scene = trainer.ctx.scene
+    assert abs(np.median(_depth_ratios(scene, static)) - 1) < 0.10
