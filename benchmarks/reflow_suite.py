@@ -44,6 +44,9 @@ METHODS = {
     "reflow_no_comp_init": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow", "--disable", "comp_init"],
     # the paper's "w/o align": raw per-frame pointmaps (the initial-cloud check may fall back)
     "reflow_no_align": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow", "--no-canonical_align"],
+    # the same without the check's fallback: the raw pointmaps whatever their scale
+    "reflow_no_align_unchecked": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow",
+                                  "--no-canonical_align", "--no-canonical_check"],
 }
 SCHEDULES = {
     "full": [],

@@ -156,6 +156,10 @@ class ReFlowParams:
                                  check=_non_negative)
     canonical_shift: bool = param(False, "also fit a per-frame depth shift (besides the scale); off by default: "
                                          "with noisy pointmaps it trades against the scale and flattens depth")
+    canonical_check: bool = param(True, "check the canonical cloud before training (views, depth against the "
+                                        "sparse points or bounds, dynamic spread) and fall back when it fails; "
+                                        "--no-canonical_check keeps a failing cloud (with the warning), e.g. to "
+                                        "measure raw 'w/o align' on monocular disparity")
     canonical_cache: bool = param(True, "reuse the canonical space cached in <model>/reflow/canonical when the "
                                         "dataset, masks and settings are unchanged")
     # --- diagnostics ---

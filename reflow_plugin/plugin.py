@@ -232,9 +232,10 @@ class ReFlowPlugin(Plugin):
         anchors = ctx.point_cloud.points if ctx.point_cloud_source in ("dataset", "triangulated") else None
         attempts = [("canonical space", options)]
         cameras = ctx.train_cameras
+        keep = not self.p.canonical_check
         disparity = options.provider in ("auto", "depth") and all(c.disparity is not None for c in cameras)
         bounds = all(c.extras.get("near_far") is not None for c in cameras)
-        if disparity and (anchors is not None or bounds) and (not options.align or options.refine):
+        if not keep and disparity and (anchors is not None or bounds) and (not options.align or options.refine):
             attempts.append((f"per-frame fits to the {'sparse points' if anchors is not None else 'bounds'}",
                              replace(options, align=True, refine=False)))
         failures = []
@@ -243,11 +244,13 @@ class ReFlowPlugin(Plugin):
                                           progress=not ctx.args.run.quiet, anchors=anchors)
             static, dynamic, times, groups, described = self._compose(ctx, space, masks)
             check = check_initial_cloud(static.points, groups, ctx.train_cameras, anchors)
-            if check.passed:
+            if check.passed or keep:
                 break
             failures.append(f"{what}: {check.failure}")
         else:
             space = None
+        if not check.passed and keep:
+            log.warning("initial cloud check failed (%s); kept (--no-canonical_check)", check.failure)
         self.info["canonical_check"] = dict(check.as_dict(), failures=failures,
                                             used=what if space is not None else "host cloud + part 1 seeds")
         if failures:
