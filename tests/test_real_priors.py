@@ -197,3 +197,10 @@ def test_wo_align_on_monocular_disparity_fails_the_check_and_falls_back(real_sce
     static = trainer.ctx.point_cloud.points[~plugin.labels]
     scene = trainer.ctx.scene
     assert abs(np.median(_depth_ratios(scene, static)) - 1) < 0.10
+    # --no-canonical_check keeps the failing raw cloud (the paper's raw "w/o align"), warning once
+    trainer = build_trainer([*argv, "-m", str(tmp_path / "raw"), "--no-canonical_check"])
+    trainer.build()
+    check = trainer.hooks.plugins[0].info["canonical_check"]
+    assert not check["passed"] and check["used"] == "canonical space" and not check["failures"]
+    raw = trainer.ctx.point_cloud.points[~trainer.hooks.plugins[0].labels]
+    assert np.median(_depth_ratios(scene, raw)) < 0.1
