@@ -21,7 +21,8 @@ world units, no motion masks, so ReFlow estimates them), in `data/synthetic_real
 `output/suite_real/` by default; PSNR-dynamic still uses the exact masks (gt/motion_masks).
 `reflow_no_align` is the paper's "w/o align" (`--no-canonical_align`). `--schedule half` is the
 ablation's half schedule (300 coarse + 1000 fine iterations, decay and densification scaled),
-`quarter` half of that again (150 + 500).
+`quarter` half of that again (150 + 500). `--report_only` trains nothing and prints the table of
+the finished runs.
 """
 from __future__ import annotations
 
@@ -156,6 +157,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="real: the scenes as real captures come (see the module docstring)")
     parser.add_argument("--scene_scale", type=float, default=50.0, help="world units of --priors real scenes")
     parser.add_argument("--schedule", choices=tuple(SCHEDULES), default="full")
+    parser.add_argument("--report_only", action="store_true", help="train nothing: the table of the finished runs")
     args = parser.parse_args(argv)
     if args.out is None:
         args.out = ROOT / "output" / ("suite" if args.priors == "exact" else "suite_real")
@@ -166,6 +168,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unknown method(s) {unknown}; known: {list(METHODS)}")
     threads = max(1, (os.cpu_count() or 1) // args.jobs) if args.jobs > 1 else None
     jobs = [(s, m) for s in scenes for m in methods]
+    if args.report_only:
+        jobs = [(s, m) for s, m in jobs if finished(args.out / s / m) and (args.out / s / m / "flow_metrics.json").is_file()]
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         runs = list(pool.map(lambda job: run_one(job[0], job[1], args.out, extra, threads, args.priors,
                                                  args.scene_scale), jobs))
