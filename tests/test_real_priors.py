@@ -173,7 +173,29 @@ def test_run_with_the_initial_cloud_outside_every_view_stops_early(tiny_scene, t
 def test_stall_guard_stays_quiet_on_a_healthy_run(tiny_scene, tmp_path):
     """The guard's whole window on a healthy scene (dynamic) and with every Gaussian static."""
     summary = train_from_argv(base_argv(tiny_scene, tmp_path / "run", 60, 60, "--stall_iterations", "100"))
-    assert summary.trainer.stall_guard.seen == 100 and not summary.trainer.stall_guard.armed
+    guard = summary.trainer.stall_guard
+    assert guard.armed and guard.seen == 120 and len(guard.losses) == 100 and guard.invisible_since is None
+
+
+def test_stall_guard_catches_a_run_that_dies_later(tiny_scene):
+    """Everything visible for 50 steps, then nothing (all pruned): stopped 100 steps later, named."""
+    import torch
+    from types import SimpleNamespace
+
+    from baselines.fourdgs.stall_guard import StallGuard, TrainingStalled
+
+    cams = load_scene(tiny_scene, eval=False).train_cameras
+    model = SimpleNamespace(get_xyz=torch.zeros(0, 3))
+    guard = StallGuard(100)
+    with pytest.raises(TrainingStalled, match="since step 51 .* pruned or became transparent") as stop:
+        for step in range(1, 400):
+            alpha = torch.full((4, 4, 1), 0.5 if step <= 50 else 0.0)
+            ctx = SimpleNamespace(views=[SimpleNamespace(alpha=alpha)], metrics={"loss": 1.0 / step}, loss=None,
+                                  batch=[cams[step % len(cams)]], model=model, train_cameras=cams,
+                                  point_cloud_source="plugin", scene=SimpleNamespace(near_far=(1.0, 9.0)),
+                                  stage="fine", iteration=step)
+            guard.observe(ctx)
+    assert step == 150 and "0 Gaussians" in str(stop.value)
 
 
 def test_wo_align_on_monocular_disparity_fails_the_check_and_falls_back(real_scene, tmp_path, caplog):
