@@ -19,7 +19,9 @@ with a quiet single run).
 --priors real --scene_scale 50`: monocular disparity with a per-frame scale and shift, NVIDIA-like
 world units, no motion masks, so ReFlow estimates them), in `data/synthetic_real/<scene>` and
 `output/suite_real/` by default; PSNR-dynamic still uses the exact masks (gt/motion_masks).
-`reflow_no_align` is the paper's "w/o align" (`--no-canonical_align`). `--schedule half` is the
+`reflow_no_align` is the paper's "w/o align" (`--no-canonical_align`; on monocular disparity
+the raw cloud fails the initial-cloud check and the run falls back to the per-frame fits),
+`reflow_no_align_unchecked` the raw cloud kept (`--no-canonical_check`). `--schedule half` is the
 ablation's half schedule (300 coarse + 1000 fine iterations, decay and densification scaled),
 `quarter` half of that again (150 + 500). `--report_only` trains nothing and prints the table of
 the finished runs.
