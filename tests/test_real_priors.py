@@ -226,3 +226,15 @@ def test_wo_align_on_monocular_disparity_fails_the_check_and_falls_back(real_sce
     assert not check["passed"] and check["used"] == "canonical space" and not check["failures"]
     raw = trainer.ctx.point_cloud.points[~trainer.hooks.plugins[0].labels]
     assert np.median(_depth_ratios(scene, raw)) < 0.1
+
+
+def test_mask_quality_scores():
+    from scripts.mask_quality import mask_scores
+
+    truth = np.zeros((4, 4), bool)
+    truth[:2] = True  # 8 px
+    estimate = np.zeros((4, 4), bool)
+    estimate[1:3] = True  # 8 px, 4 of them right
+    scores = mask_scores([estimate, truth], [truth, truth])
+    assert scores["recall"] == pytest.approx(12 / 16) and scores["precision"] == pytest.approx(12 / 16)
+    assert scores["iou"] == pytest.approx(12 / 20) and scores["true_px"] == 8 and scores["estimated_px"] == 8
