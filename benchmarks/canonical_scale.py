@@ -19,7 +19,8 @@ depth differs) with:
 Columns: the static cloud's depth over the true depth at its pixel (median, and the share within
 10%, over every training view it lands in), the dynamic cloud's spread against its mask's
 footprint (canonical/check.py; 1 = a flat disc at the static scene's depth), whether the
-initial-cloud check passes, and the seconds of the alignment. One thread.
+initial-cloud check passes, and the seconds of the alignment (w/o align: of the whole build). One
+thread.
 """
 from __future__ import annotations
 
