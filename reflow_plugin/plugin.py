@@ -16,7 +16,8 @@ Components (``--disable`` / ``--enable``, the paper's ablation switches):
 
 Hook by hook (order of hooks.py):
     on_scene_loaded      pair sampler (errors before long work: a single frame, no pairs)
-    initial_point_cloud  canonical space, or the host's cloud + labels by mask vote + seeded dynamic points
+    initial_point_cloud  canonical space (checked; canonical/check.py), or the host's cloud + labels by mask
+                         vote + seeded dynamic points
     build_model          GaussianModel with SeparatedDeformation (separation)
     on_model_created     labels -> deformation table; dynamic HexPlane box fitted to dynamic points
     select_batch         a pair (a, b) of nearby training frames (widening from the reference frame)
@@ -37,6 +38,7 @@ from __future__ import annotations
 
 import json
 import logging
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -163,7 +165,14 @@ class ReFlowPlugin(Plugin):
         if masks is not None:
             self.mask_tensors = {c.uid: torch.from_numpy(m).to(ctx.device) for c, m in zip(cameras, masks)}
         if self.is_enabled("comp_init") and canonical_available()[0]:
-            return self._canonical_cloud(ctx, masks)
+            cloud = self._canonical_cloud(ctx, masks)
+            if cloud is not None:
+                return cloud
+        return self._host_cloud(ctx, masks, source)
+
+    def _host_cloud(self, ctx, masks, source) -> PointCloud | None:
+        """Part 1: the host's cloud, labelled by mask vote, plus keyframe seeds (None: the host's as is)."""
+        cameras, host = ctx.train_cameras, ctx.point_cloud
         depths = aligned_depths(cameras, host.points, masks)
         labels = (vote_labels(host.points, cameras, masks, depths, self.p.label_vote) if masks is not None
                   else np.zeros(len(host), bool))
@@ -212,18 +221,64 @@ class ReFlowPlugin(Plugin):
         return (PointCloud(np.concatenate([c.points for c in clouds]), np.concatenate([c.colors for c in clouds])),
                 np.concatenate(times))
 
-    def _canonical_cloud(self, ctx, masks) -> PointCloud:
+    def _canonical_cloud(self, ctx, masks) -> PointCloud | None:
         """Canonical STATIC cloud + part 1's keyframe seeds (their depth aligned to the static points)
         by default; the paper's reference-frame dynamic cloud with --dynamic_keyframes 1 or without
-        separation (measured on the skating scene: the single reference cloud alone misses the skater)."""
+        separation (measured on the skating scene: the single reference cloud alone misses the skater).
+
+        The cloud is checked before training (canonical/check.py: views, depth against the host's
+        sparse points or the bounds, dynamic spread). A failing check logs one warning and falls
+        back: the per-frame fits of the dataset's disparity to the sparse points, else to the
+        bounds (no joint refinement, no raw pointmaps), else None (the caller uses the host's cloud
+        + part 1's seeds). Recorded in info["canonical_check"].
+        """
         from .canonical import build_canonical_space, options_from_params
+        from .canonical.check import check_initial_cloud
 
         options = options_from_params(self.p)
         options.device = str(ctx.device)
-        space = build_canonical_space(ctx.scene, masks, options,
-                                      cache_dir=self._run_dir(ctx) / "canonical", progress=not ctx.args.run.quiet)
+        anchors = ctx.point_cloud.points if ctx.point_cloud_source in ("dataset", "triangulated") else None
+        attempts = [("canonical space", options)]
+        cameras = ctx.train_cameras
+        keep = not self.p.canonical_check
+        disparity = options.provider in ("auto", "depth") and all(c.disparity is not None for c in cameras)
+        bounds = all(c.extras.get("near_far") is not None for c in cameras)
+        if not keep and disparity and (anchors is not None or bounds) and (not options.align or options.refine):
+            attempts.append((f"per-frame fits to the {'sparse points' if anchors is not None else 'bounds'}",
+                             replace(options, align=True, refine=False)))
+        failures = []
+        for what, opts in attempts:
+            space = build_canonical_space(ctx.scene, masks, opts, cache_dir=self._run_dir(ctx) / "canonical",
+                                          progress=not ctx.args.run.quiet, anchors=anchors)
+            static, dynamic, times, groups, described = self._compose(ctx, space, masks)
+            check = check_initial_cloud(static.points, groups, ctx.train_cameras, anchors)
+            if check.passed or keep:
+                break
+            failures.append(f"{what}: {check.failure}")
+        else:
+            space = None
+        if not check.passed and keep:
+            log.warning("initial cloud check failed (%s); kept (--no-canonical_check)", check.failure)
+        self.info["canonical_check"] = dict(check.as_dict(), failures=failures,
+                                            used=what if space is not None else "host cloud + part 1 seeds")
+        if failures:
+            log.warning("initial cloud check failed (%s); using the %s instead", "; ".join(failures),
+                        self.info["canonical_check"]["used"])
+        if space is None:
+            return None
         space.write_ply(self._run_dir(ctx))
         self.info["canonical"] = space.report
+        self.labels = np.concatenate([np.zeros(len(static), bool), np.ones(len(dynamic), bool)])
+        self.seed_times = np.concatenate([np.full(len(static), np.nan), times])
+        self.info["initial_cloud"] = f"{what}: {len(static)} static + {described}"
+        log.info("initial cloud: %s", self.info["initial_cloud"])
+        return PointCloud(np.concatenate([static.points, dynamic.points]),
+                          np.concatenate([static.colors, dynamic.colors]))
+
+    def _compose(self, ctx, space, masks):
+        """(static cloud, dynamic cloud, seed times, DynamicGroups for the check, description)."""
+        from .canonical.check import DynamicGroup
+
         static, cameras = space.static, ctx.train_cameras
         if len(static) == 0:  # every pixel masked or unconfident: the host's cloud stands in
             log.warning("canonical space: no static point; the host's %s cloud is used as the static cloud",
@@ -235,16 +290,13 @@ class ReFlowPlugin(Plugin):
         if keyframe_seeds:
             depths = aligned_depths(cameras, static.points, masks)
             dynamic, times = self._seed_keyframes(ctx, cameras, masks, depths, static)
-            what = f"{len(dynamic)} keyframe-seeded dynamic points"
-        else:
-            dynamic, times = space.dynamic, np.full(len(space.dynamic), np.nan)
-            what = f"{len(dynamic)} dynamic points (reference frame)"
-        self.labels = np.concatenate([np.zeros(len(static), bool), np.ones(len(dynamic), bool)])
-        self.seed_times = np.concatenate([np.full(len(static), np.nan), times])
-        self.info["initial_cloud"] = f"canonical space: {len(static)} static + {what}"
-        log.info("initial cloud: %s", self.info["initial_cloud"])
-        return PointCloud(np.concatenate([static.points, dynamic.points]),
-                          np.concatenate([static.colors, dynamic.colors]))
+            groups = [DynamicGroup(cameras[k], masks[k], dynamic.points[times == cameras[k].time])
+                      for k in sorted({k for k, c in enumerate(cameras) if c.image_name in self.info["seed"]["keyframes"]})]
+            return static, dynamic, times, groups, f"{len(dynamic)} keyframe-seeded dynamic points"
+        dynamic, times = space.dynamic, np.full(len(space.dynamic), np.nan)
+        groups = ([DynamicGroup(cameras[self.reference], masks[self.reference], dynamic.points)]
+                  if self.reference is not None and masks is not None else [])
+        return static, dynamic, times, groups, f"{len(dynamic)} dynamic points (reference frame)"
 
     def build_model(self, ctx) -> GaussianModel | None:
         if not self.is_enabled("separation"):

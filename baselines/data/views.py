@@ -42,6 +42,7 @@ class ViewSpec:
     mask_path: Path | None = None
     disparity_path: Path | None = None
     extras: dict[str, np.ndarray] = field(default_factory=dict)
+    eval_mask_path: Path | None = None  # ground-truth mask for evaluation only (extras["eval_mask"])
 
 
 @dataclass
@@ -53,12 +54,13 @@ class _Loaded:
     mask: np.ndarray | None
     disparity: np.ndarray | None
     transparent: bool = False  # an RGBA image whose alpha is 0 everywhere: nothing but background
+    eval_mask: np.ndarray | None = None
 
 
 def _require_paths(specs: Sequence[ViewSpec]) -> None:
     """Fail before decoding anything if a file is missing."""
     for spec in specs:
-        for path in (spec.image_path, spec.mask_path, spec.disparity_path):
+        for path in (spec.image_path, spec.mask_path, spec.disparity_path, spec.eval_mask_path):
             if path is not None and not Path(path).is_file():
                 raise DatasetError(f"missing file: {path}")
 
@@ -100,7 +102,8 @@ def load_views(specs: Sequence[ViewSpec], resolution: int | float, background: S
             disparity = read_disparity(spec.disparity_path)
             require_scaled_copy(spec.disparity_path, "disparity map", (disparity.shape[1], disparity.shape[0]), file_size)
             disparity = resize_disparity(disparity, size)
-        return _Loaded(file_size, image, alpha, K, mask, disparity, transparent)
+        eval_mask = None if spec.eval_mask_path is None else resize_mask(read_mask(spec.eval_mask_path), size)
+        return _Loaded(file_size, image, alpha, K, mask, disparity, transparent, eval_mask)
 
     loaded = parallel_map(load_one, list(range(len(specs))))
     _check_sizes(specs, [item.file_size for item in loaded], same_size)
@@ -118,6 +121,8 @@ def load_views(specs: Sequence[ViewSpec], resolution: int | float, background: S
         extras = {k: torch.as_tensor(np.asarray(v, np.float32)) for k, v in spec.extras.items()}
         if item.alpha is not None:
             extras["alpha"] = torch.from_numpy(np.ascontiguousarray(item.alpha, np.float32))
+        if item.eval_mask is not None:
+            extras["eval_mask"] = torch.from_numpy(item.eval_mask.astype(np.float32))
         cameras.append(Camera(
             uid=uid, image_name=spec.image_name, width=item.image.shape[1], height=item.image.shape[0],
             K=torch.from_numpy(item.K.astype(np.float32)), viewmat=torch.from_numpy(spec.viewmat.astype(np.float32)),

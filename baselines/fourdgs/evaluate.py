@@ -10,7 +10,8 @@ results.json = {"ours_<iter>": {"PSNR", "SSIM", "LPIPS-vgg", "LPIPS-alex"}} and 
 same keys mapping image name -> value. LPIPS is null when the lpips package or its weights are
 unavailable, and results.json then says why under "LPIPS_unavailable"; it is never faked.
 
-Dynamic-region metrics (ours): when the dataset has motion masks, "PSNR-dynamic" / "SSIM-dynamic"
+Dynamic-region metrics (ours): when the dataset has motion masks (or ground-truth masks for
+evaluation only, `Camera.evaluation_mask`), "PSNR-dynamic" / "SSIM-dynamic"
 are computed inside each test view's mask and "PSNR-static" / "SSIM-static" outside it (SSIM: the
 3DGS SSIM map averaged over those pixels). Full-image PSNR is dominated by the static background;
 these say whether the moving object is there at all. A view whose mask is empty (or full) has
@@ -114,8 +115,8 @@ def evaluate_cameras(
             value, reason = lpips_or_reason(image, gt, net=net)
             row[f"LPIPS-{net}"] = value
             result.lpips_unavailable = reason or result.lpips_unavailable
-        if cam.mask is not None:
-            row.update(region_metrics(image, gt, cam.mask))
+        if cam.evaluation_mask is not None:
+            row.update(region_metrics(image, gt, cam.evaluation_mask))
         result.per_view[name] = row
         for key, value in row.items():
             if value is not None:

@@ -48,6 +48,7 @@ from baselines.run_folder import (RunFolder, RunIdentity, TrainingInterrupted, c
                                   check_upgrade_plugins)
 from .run_log import RunLog, StageTimer
 from .sampler import CameraSampler
+from .stall_guard import StallGuard
 
 log = logging.getLogger(__name__)
 STAGES = ("coarse", "fine")
@@ -134,6 +135,7 @@ class Trainer:
         plugins = self.hooks.plugins
         return RunIdentity.of([p.name for p in plugins], {p.name: p.enabled for p in plugins},
                               self.args.model.source_path)
+        self.stall_guard = StallGuard(0)  # armed by train() for a run that starts from its initial cloud
 
     # ------------------------------------------------------------------ set-up
     def build(self) -> None:
@@ -178,6 +180,8 @@ class Trainer:
         resume = self._resume_point()
         if self.ctx.model is None:
             self.build()
+        if resume is None:  # a fresh run: stop early if it cannot learn (stall_guard.py)
+            self.stall_guard = StallGuard(self.opt.stall_iterations)
         with deferred_interrupt() as self._stop:
             for stage in STAGES:
                 if resume is not None and STAGES.index(stage) < STAGES.index(resume["stage"]):
@@ -273,6 +277,7 @@ class Trainer:
             loss=float(ctx.loss.detach()), num_gaussians=model.num_gaussians,
             psnr=float(torch.stack([psnr(v.image.detach(), v.camera.image) for v in ctx.views]).mean()),
         )
+        self.stall_guard.observe(ctx)
         self.run_log.iteration(ctx, every=self.run.log_every)
 
     def _check_finite_gradients(self) -> None:

@@ -51,12 +51,27 @@ BLOCK_ROUNDS = 5
 
 @dataclass
 class FrameState:
-    """Aligned frame: depth = scale * D + shift; viewmat [4, 4] world -> camera."""
+    """Aligned frame: depth = scale * D + shift, or with `inverse` 1 / depth = scale * d + shift on
+    the provider's inverse depth d (canonical/inverse.py); viewmat [4, 4] world -> camera."""
 
     scale: float
     shift: float
     viewmat: np.ndarray
     determined: bool = True  # False: the scale is a fallback (no camera baseline, no edge)
+    inverse: bool = False
+    max_depth: float = float("inf")  # inverse states: farther pixels carry no depth
+
+    def metric_depth(self, provider: PointmapProvider, n: int, full: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(metric z-depth [h, w], provider confidence [h, w]) of frame n; NaN where not positive
+        (or, inverse, beyond max_depth)."""
+        if not self.inverse:
+            depth, conf = provider.depth(n, full)
+            return self.scale * np.asarray(depth, np.float64) + self.shift, conf
+        d, conf = provider.inverse_depth(n, full)
+        u = self.scale * np.asarray(d, np.float64) + self.shift
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(u > 0, 1.0 / u, np.nan)
+        return np.where(z <= self.max_depth, z, np.nan), conf
 
 
 @dataclass
