@@ -19,11 +19,16 @@ from baselines.thread_policy import apply_thread_policy
 
 apply_thread_policy()  # before torch starts: passive OpenMP waits, threads from the CPUs available
 
-from baselines.fourdgs.app import run_cli, train_from_argv  # noqa: E402
+from baselines.cli_exit import run_cli  # noqa: E402  (no torch: the checks below come first)
+from baselines.run_folder import precheck_model_folder  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
-    train_from_argv(sys.argv[1:] if argv is None else argv)
+    argv = sys.argv[1:] if argv is None else argv
+    precheck_model_folder(argv)  # a typed -m that cannot take this run is refused before torch loads
+    from baselines.fourdgs.app import train_from_argv
+
+    train_from_argv(argv)
     return 0
 
 

@@ -237,6 +237,9 @@ class OptimizationParams:
     densify_grad_from: str = param("baseline", "which losses' screen-space gradients drive densification: "
                                    "baseline (the photometric reconstruction loss, 4DGS's statistic even "
                                    "when plugins add losses) or all", ours=True, choices=("baseline", "all"))
+    stall_iterations: int = param(200, "stop a run that cannot learn (no Gaussian visible in any view, or a "
+                                  "loss flat to 1e-4) after this many iterations from its start, with "
+                                  "error: and exit 2 (0: never)", ours=True, check=_check_non_negative)
 
 
 @dataclass
@@ -268,6 +271,8 @@ class RunParams:
                               comma_list=True)
     log_every: int = param(10, "iterations between progress/log updates", ours=True,
                            check=_check_positive)
+    overwrite: bool = param(False, "clear the earlier run's files in -m before this run (without it, "
+                            "a folder holding a run is refused)", ours=True)
 
 
 @dataclass

@@ -33,7 +33,7 @@ log = logging.getLogger("arguments")
 
 CFG_ARGS = "cfg_args"
 CONFIG_JSON = "config.json"
-_CLI_ONLY_FIELDS = {"configs"}
+_CLI_ONLY_FIELDS = {"configs", "overwrite"}  # never replayed from a saved config
 
 
 def write_cfg_args(path: str | Path, train_args: TrainArgs,
@@ -51,7 +51,7 @@ def write_cfg_args(path: str | Path, train_args: TrainArgs,
     for values in groups.values():
         flat.update(values)
     cfg_path = model_dir / CFG_ARGS
-    _atomic_write(cfg_path, repr(argparse.Namespace(**flat)))
+    atomic_write_text(cfg_path, repr(argparse.Namespace(**flat)))
     doc: dict[str, Any] = {
         "_about": "Resolved configuration of this run; reuse with --configs <this file>.",
         "_argv": list(train_args.argv),
@@ -67,7 +67,7 @@ def write_cfg_args(path: str | Path, train_args: TrainArgs,
             values = {k: v for k, v in values.items() if k not in _CLI_ONLY_FIELDS}
         doc[name] = values
     json_path = model_dir / CONFIG_JSON
-    _atomic_write(json_path, json.dumps(doc, indent=2) + "\n")
+    atomic_write_text(json_path, json.dumps(doc, indent=2) + "\n")
     return cfg_path, json_path
 
 
@@ -199,7 +199,7 @@ def _eval_cfg_args(path: Path) -> dict[str, Any]:
     return vars(ns)
 
 
-def _atomic_write(path: Path, text: str) -> None:
+def atomic_write_text(path: Path, text: str) -> None:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as fh:

@@ -42,6 +42,10 @@ def _prepare(train_argv: list[str], model_from: Path | None, warmup: int, gaussi
 
     from baselines.fourdgs.app import build_trainer
 
+    if not any(a in ("-m", "--model_path") or a.startswith("--model_path=") for a in train_argv):
+        import tempfile  # a scratch model folder, not output/<scene> (which may hold a real run)
+
+        train_argv = ["-m", tempfile.mkdtemp(prefix="profile_step_"), *train_argv]
     trainer = build_trainer(["--quiet", "--test_iterations", "-1", "--save_iterations", "-1", *train_argv])
     if model_from is not None:
         trainer.load_model_from(model_from)

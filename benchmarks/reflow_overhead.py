@@ -84,7 +84,7 @@ def build(variant: str, scene: Path, out: Path):
     from baselines.fourdgs.app import build_trainer
 
     argv = ["-s", str(scene), "-m", str(out / variant.replace(" ", "_").replace(":", "")),
-            "--configs", str(REPO / "arguments" / "synthetic" / "default.py"), "--quiet",
+            "--configs", str(REPO / "arguments" / "synthetic" / "default.py"), "--quiet", "--overwrite",
             "--densify_until_iter", "0", "--test_iterations", "[]", "--save_iterations", "[]", *VARIANTS[variant]]
     if "--plugin" in argv:
         argv += ["--flow_vis_every", "0"]

@@ -2,16 +2,29 @@
 
     python benchmarks/reflow_suite.py [--scenes balloon,playground,skating,truck,umbrella]
                                       [--out output/suite] [--jobs 1] [-- extra train.py flags]
+    python benchmarks/reflow_suite.py --priors real --schedule half --jobs 2 \
+        --methods baseline,reflow,reflow_no_align           # the suite as real captures come
 
 Each (scene, method) is an ordinary `train.py` run in `OUT/<scene>/<method>` with the scene's
 synthetic config (`arguments/synthetic/default.py`, ReFlow: `arguments/synthetic/reflow.py`), the
 full schedule; `reflow_no_comp_init` is ReFlow without its complete canonical space (part 1
-alone). A run whose `results.json` exists is reused (a killed sweep resumes). The baseline's
+alone). A run whose `results.json` holds its final metrics is reused (a killed sweep resumes). The baseline's
 flow is measured afterwards with `python -m reflow_plugin.evaluate` (the same renderer ReFlow's
 own evaluation uses). Prints one Markdown table (per scene and mean) and writes it with the raw
 figures to `OUT/suite.md` / `OUT/suite.json`. `--jobs 2` runs two trainings at once with one
 thread each (about as fast in total on 2 cores, and the wall-clock column is then not comparable
 with a quiet single run).
+
+`--priors real` trains on the scenes written as real captures come (`python -m baselines.synthetic
+--priors real --scene_scale 50`: monocular disparity with a per-frame scale and shift, NVIDIA-like
+world units, no motion masks, so ReFlow estimates them), in `data/synthetic_real/<scene>` and
+`output/suite_real/` by default; PSNR-dynamic still uses the exact masks (gt/motion_masks).
+`reflow_no_align` is the paper's "w/o align" (`--no-canonical_align`; on monocular disparity
+the raw cloud fails the initial-cloud check and the run falls back to the per-frame fits),
+`reflow_no_align_unchecked` the raw cloud kept (`--no-canonical_check`). `--schedule half` is the
+ablation's half schedule (300 coarse + 1000 fine iterations, decay and densification scaled),
+`quarter` half of that again (150 + 500). `--report_only` trains nothing and prints the table of
+the finished runs.
 """
 from __future__ import annotations
 
@@ -32,7 +45,20 @@ METHODS = {
     "reflow": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow"],
     # part 1 alone: the host's triangulated cloud plus keyframe seeds instead of the canonical space
     "reflow_no_comp_init": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow", "--disable", "comp_init"],
+    # the paper's "w/o align": raw per-frame pointmaps (the initial-cloud check may fall back)
+    "reflow_no_align": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow", "--no-canonical_align"],
+    # the same without the check's fallback: the raw pointmaps whatever their scale
+    "reflow_no_align_unchecked": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow",
+                                  "--no-canonical_align", "--no-canonical_check"],
 }
+SCHEDULES = {
+    "full": [],
+    "half": ["--iterations", "1000", "--position_lr_max_steps", "1000", "--densify_until_iter", "750",
+             "--test_iterations", "500", "1000", "--save_iterations", "1000"],
+    "quarter": ["--coarse_iterations", "150", "--iterations", "500", "--position_lr_max_steps", "500",
+                "--densify_until_iter", "375", "--test_iterations", "250", "500", "--save_iterations", "500"],
+}
+PRIORS = {"exact": ("synthetic", []), "real": ("synthetic_real", ["--priors", "real", "--scene_scale"])}
 
 
 def _latest(results: dict) -> tuple[str, dict]:
@@ -40,18 +66,33 @@ def _latest(results: dict) -> tuple[str, dict]:
     return key, results[key]
 
 
-def run_one(scene: str, method: str, out: Path, extra: list[str], threads: int | None) -> Path:
+def finished(run: Path) -> bool:
+    """Whether the run wrote its final metrics (a plugin writes results.json early, at set-up)."""
+    path = run / "results.json"
+    return path.is_file() and any(k.startswith("ours_") for k in json.loads(path.read_text()))
+
+
+def scene_source(scene: str, priors: str = "exact", scene_scale: float = 50.0) -> tuple[Path, list[str]]:
+    """(data folder, simulator flags) of a suite scene in the given priors mode."""
+    folder, flags = PRIORS[priors]
+    return ROOT / "data" / folder / scene, (flags + [str(scene_scale)] if flags else [])
+
+
+def run_one(scene: str, method: str, out: Path, extra: list[str], threads: int | None, priors: str = "exact",
+            scene_scale: float = 50.0) -> Path:
     """Train (unless done) and measure the flow of one (scene, method); returns the run folder."""
     run = out / scene / method
     env = dict(os.environ)
     if threads:
         env["OMP_NUM_THREADS"] = str(threads)
-    if not (run / "results.json").is_file():
-        source = ROOT / "data" / "synthetic" / scene
+    if not finished(run):
+        source, flags = scene_source(scene, priors, scene_scale)
         if not (source / "poses_bounds.npy").is_file():
-            subprocess.run([sys.executable, "-m", "baselines.synthetic", "--scene", scene, "--out", str(source), "--quiet"], cwd=ROOT,
-                           check=True, env=env)
-        cmd = [sys.executable, "train.py", "-s", str(source), "-m", str(run), "--quiet", *METHODS[method], *extra]
+            subprocess.run([sys.executable, "-m", "baselines.synthetic", "--scene", scene, "--out", str(source), "--quiet",
+                            *flags], cwd=ROOT, check=True, env=env)
+        # no results.json: never trained, or a torn run (killed): --overwrite clears the latter's files
+        cmd = [sys.executable, "train.py", "-s", str(source), "-m", str(run), "--quiet", "--overwrite", *METHODS[method],
+               *extra]
         run.mkdir(parents=True, exist_ok=True)
         with open(run / "suite_train.log", "w") as log:
             subprocess.run(cmd, cwd=ROOT, check=True, env=env, stdout=log, stderr=subprocess.STDOUT)
@@ -69,8 +110,11 @@ def summarise(run: Path) -> dict:
     flow = json.loads((run / "flow_metrics.json").read_text()).get(key, {})
     log = [json.loads(line) for line in (run / "train_log.jsonl").read_text().splitlines()]
     end = [r for r in log if r["kind"] == "train_end"]
+    results = json.loads((run / "results.json").read_text())
+    check = results.get("reflow", {}).get("canonical_check", {})
     row = {"PSNR": metrics["PSNR"], "SSIM": metrics["SSIM"], "PSNR-dynamic": metrics.get("PSNR-dynamic"),
-           "PSNR-static": metrics.get("PSNR-static"), "train_s": end[-1]["wall_seconds"] if end else None}
+           "PSNR-static": metrics.get("PSNR-static"), "train_s": end[-1]["wall_seconds"] if end else None,
+           "initial cloud": check.get("used")}
     if flow.get("available"):
         row.update({"EPE-train": flow["train"]["epe"], "EPE-train-dynamic": flow["train"]["epe_dynamic"],
                     "EPE-test": flow["test"]["epe"], "EPE-test-dynamic": flow["test"]["epe_dynamic"]})
@@ -78,7 +122,7 @@ def summarise(run: Path) -> dict:
 
 
 COLUMNS = ("PSNR", "SSIM", "PSNR-dynamic", "PSNR-static", "EPE-train", "EPE-train-dynamic", "EPE-test",
-           "EPE-test-dynamic", "train_s")
+           "EPE-test-dynamic", "train_s", "initial cloud")
 
 
 def table(rows: dict[str, dict[str, dict]]) -> str:
@@ -87,14 +131,18 @@ def table(rows: dict[str, dict[str, dict]]) -> str:
     lines = ["| scene | method | " + " | ".join(COLUMNS) + " |", "|" + "---|" * (len(COLUMNS) + 2)]
 
     def cells(values: dict) -> str:
-        return " | ".join("-" if values.get(c) is None else fmt.get(c, "{:.2f}").format(values[c]) for c in COLUMNS)
+        return " | ".join("-" if values.get(c) is None else str(values[c]) if isinstance(values[c], str)
+                          else fmt.get(c, "{:.2f}").format(values[c]) for c in COLUMNS)
 
     for scene, methods in rows.items():
         for method, values in methods.items():
             lines.append(f"| {scene} | {method} | {cells(values)} |")
     for method in METHODS:
         got = [m[method] for m in rows.values() if method in m]
-        mean = {c: float(np.mean([g[c] for g in got])) for c in COLUMNS if got and all(g.get(c) is not None for g in got)}
+        if not got:
+            continue
+        mean = {c: float(np.mean([g[c] for g in got])) for c in COLUMNS
+                if all(isinstance(g.get(c), (int, float)) for g in got)}
         lines.append(f"| **mean** | {method} | {cells(mean)} |")
     return "\n".join(lines)
 
@@ -107,17 +155,28 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", default=",".join(SCENES))
     parser.add_argument("--methods", default=",".join(METHODS))
-    parser.add_argument("--out", type=Path, default=ROOT / "output" / "suite")
+    parser.add_argument("--out", type=Path, default=None, help="output/suite (output/suite_real with --priors real)")
     parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument("--priors", choices=tuple(PRIORS), default="exact",
+                        help="real: the scenes as real captures come (see the module docstring)")
+    parser.add_argument("--scene_scale", type=float, default=50.0, help="world units of --priors real scenes")
+    parser.add_argument("--schedule", choices=tuple(SCHEDULES), default="full")
+    parser.add_argument("--report_only", action="store_true", help="train nothing: the table of the finished runs")
     args = parser.parse_args(argv)
+    if args.out is None:
+        args.out = ROOT / "output" / ("suite" if args.priors == "exact" else "suite_real")
+    extra = SCHEDULES[args.schedule] + extra
     scenes, methods = args.scenes.split(","), args.methods.split(",")
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         parser.error(f"unknown method(s) {unknown}; known: {list(METHODS)}")
     threads = max(1, (os.cpu_count() or 1) // args.jobs) if args.jobs > 1 else None
     jobs = [(s, m) for s in scenes for m in methods]
+    if args.report_only:
+        jobs = [(s, m) for s, m in jobs if finished(args.out / s / m) and (args.out / s / m / "flow_metrics.json").is_file()]
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        runs = list(pool.map(lambda job: run_one(job[0], job[1], args.out, extra, threads), jobs))
+        runs = list(pool.map(lambda job: run_one(job[0], job[1], args.out, extra, threads, args.priors,
+                                                 args.scene_scale), jobs))
     rows: dict[str, dict[str, dict]] = {}
     for (scene, method), run in zip(jobs, runs):
         rows.setdefault(scene, {})[method] = summarise(run)

@@ -177,7 +177,7 @@ def worker(job: dict[str, Any]) -> dict[str, Any]:
     from baselines.render.kernel import kernel_available
 
     probe_class = register_plugin(_make_probe_class())
-    argv = ["-s", job["scene_path"], "-m", job["model_path"], "--configs", job["config"], "--quiet",
+    argv = ["-s", job["scene_path"], "-m", job["model_path"], "--configs", job["config"], "--quiet", "--overwrite",
             "--test_iterations", "[]", "--save_iterations", "[]"]
     if job["coarse_iterations"] is not None:
         argv += ["--coarse_iterations", str(job["coarse_iterations"])]

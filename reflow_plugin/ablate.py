@@ -271,7 +271,11 @@ def parse_runner_args(argv: list[str] | None, prog: str, description: str, names
     parser.add_argument("--executor", default="local", choices=("local", "slurm"))
     parser.add_argument("--timeout_min", type=int, default=240)
     parser.add_argument("--slurm_partition")
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:
+        example = " ".join(unknown[:2])
+        parser.error(f"unrecognized arguments: {' '.join(unknown)} (train.py flags go after '--', "
+                     f"e.g. {prog} -s ... -o ... -- {example})")
     names = [n for n in getattr(args, names_flag).split(",") if n]
     return args, names, extra
 

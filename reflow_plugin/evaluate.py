@@ -92,8 +92,8 @@ def flow_metrics(model: GaussianModel, train_cameras: Sequence[Camera], test_cam
         usable = ~occluded & valid
         row = {"frame": frame, "split": split_of[frame], "coverage": float(usable.sum() / max((~occluded).sum(), 1)),
                "epe": float(error[usable].mean()) if usable.any() else None}
-        if cam_a.mask is not None:
-            dynamic = cam_a.mask.cpu().numpy() > 0.5
+        if cam_a.evaluation_mask is not None:
+            dynamic = cam_a.evaluation_mask.cpu().numpy() > 0.5
             for name, region in (("epe_dynamic", dynamic), ("epe_static", ~dynamic)):
                 sel = usable & region
                 row[name] = float(error[sel].mean()) if sel.any() else None

@@ -10,9 +10,8 @@ otherwise masks estimated from DIS optical flow and the known cameras
 one), cached as PNGs in `<cache_dir>/motion_masks/` with a JSON key, so a second run reads them.
 
 Disparity alignment: monocular disparity (NVIDIA's `disp/*.npy`) has an unknown scale and shift
-per frame. For each frame, 1 / z of the static points that project into it (outside its mask) is
-fitted as s * disparity + b by least squares with outlier rejection; a frame with too few points
-or a non-positive fit gets no depth.
+per frame, fitted in inverse depth to the static points that project into the frame (outside its
+mask), robustly, with the dataset's bounds as fallback (reflow_plugin.disparity).
 
 Vote: a point is dynamic when, among the training views that see it (in front, inside the image
 and, with depth, not behind the surface), at least `threshold` of them have it inside the mask.
@@ -34,8 +33,10 @@ import numpy as np
 from baselines.data import Camera
 from baselines.data.motion_masks import estimate_motion_masks
 
+from .disparity import MIN_POINTS, fit_frames, project  # noqa: F401 (project: re-exported)
+
 log = logging.getLogger(__name__)
-MIN_FIT_POINTS = 12
+EMPTY_DATASET_MASKS = "dataset (every mask empty: no moving pixel)"  # results.json["reflow"]["mask_source"]
 CACHE_VERSION = 1
 
 
@@ -45,15 +46,6 @@ class LabelError(ValueError):
 
 def _np(tensor) -> np.ndarray:
     return tensor.detach().cpu().double().numpy()
-
-
-def project(points: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(pixel x [P], pixel y [P], depth z [P]) of world points [P, 3] in `camera` (z <= 0: behind)."""
-    viewmat, K = _np(camera.viewmat), _np(camera.K)
-    cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
-    z = cam[:, 2]
-    safe = np.where(np.abs(z) > 1e-9, z, 1e-9)
-    return K[0, 0] * cam[:, 0] / safe + K[0, 2], K[1, 1] * cam[:, 1] / safe + K[1, 2], z
 
 
 def dataset_masks(cameras: Sequence[Camera]) -> list[np.ndarray] | None:
@@ -114,6 +106,10 @@ def training_masks(cameras: Sequence[Camera], source: str, cache_dir: Path | Non
     if source == "none":
         return None, "none"
     from_dataset = dataset_masks(cameras)
+    if from_dataset is not None and source in ("masks", "auto") and not any(m.any() for m in from_dataset):
+        log.warning("the dataset's motion masks mark no moving pixel in any of the %d training views: nothing "
+                    "is treated as moving (label_source=estimate estimates masks instead)", len(cameras))
+        return from_dataset, EMPTY_DATASET_MASKS
     if source == "masks":
         if from_dataset is None:
             missing = sum(c.mask is None for c in cameras)
@@ -127,47 +123,24 @@ def training_masks(cameras: Sequence[Camera], source: str, cache_dir: Path | Non
     return estimated_masks(cameras, cache_dir, depths), "estimated"
 
 
-def fit_disparity(disparity: np.ndarray, inverse_depth: np.ndarray, iterations: int = 10) -> tuple[float, float] | None:
-    """(s, b) with 1 / z ~ s * disparity + b, least squares with 3-sigma outlier rejection."""
-    keep = np.isfinite(disparity) & np.isfinite(inverse_depth)
-    if keep.sum() < MIN_FIT_POINTS:
-        return None
-    for _ in range(iterations):
-        A = np.stack([disparity[keep], np.ones(int(keep.sum()))], 1)
-        (s, b), *_ = np.linalg.lstsq(A, inverse_depth[keep], rcond=None)
-        residual = np.abs(s * disparity + b - inverse_depth)
-        scale = 1.4826 * np.median(residual[keep]) + 1e-12
-        new_keep = keep & (residual <= 3.0 * scale)
-        if new_keep.sum() < MIN_FIT_POINTS or (new_keep == keep).all():
-            break
-        keep = new_keep
-    return (float(s), float(b)) if s > 0 else None
-
-
 def aligned_depths(cameras: Sequence[Camera], static_points: np.ndarray,
                    masks: Sequence[np.ndarray] | None = None) -> list[np.ndarray] | None:
     """Metric z-depth [H, W] per camera from its disparity fitted to the static points, or None.
 
-    None when any camera lacks disparity or a fit fails (too few points, non-positive scale).
-    Pixels whose fitted inverse depth is not positive get +inf depth (no evidence).
+    Each frame's affine inverse-depth fit (reflow_plugin.disparity.fit_frames: sparse points, else
+    the dataset's near/far bounds, else a neighbour's depth range). None when any camera lacks
+    disparity, there are too few static points, or a frame has no fit at all. Pixels whose fitted
+    inverse depth is not positive get +inf depth (no evidence).
     """
-    if not cameras or any(c.disparity is None for c in cameras) or len(static_points) < MIN_FIT_POINTS:
+    if not cameras or any(c.disparity is None for c in cameras) or len(static_points) < MIN_POINTS:
         return None
-    depths = []
-    for k, cam in enumerate(cameras):
-        disparity = cam.disparity.detach().cpu().numpy().astype(np.float64)
-        x, y, z = project(static_points, cam)
-        col, row = np.floor(x).astype(int), np.floor(y).astype(int)
-        seen = (z > 1e-6) & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
-        if masks is not None:
-            seen[seen] &= ~masks[k][row[seen], col[seen]]
-        fit = fit_disparity(disparity[row[seen], col[seen]], 1.0 / z[seen]) if seen.any() else None
-        if fit is None:
-            log.info("disparity of %s could not be aligned to the static points; no depth used", cam.image_name)
-            return None
-        inverse = fit[0] * disparity + fit[1]
-        depths.append(np.where(inverse > 1e-9, 1.0 / np.maximum(inverse, 1e-9), np.inf))
-    return depths
+    disparities = [cam.disparity.detach().cpu().numpy().astype(np.float64) for cam in cameras]
+    fits = fit_frames(cameras, disparities, static_points, masks)
+    if not all(fit.usable for fit in fits):
+        missing = next(cam.image_name for cam, fit in zip(cameras, fits) if not fit.usable)
+        log.info("disparity of %s could not be aligned to the static points; no depth used", missing)
+        return None
+    return [np.nan_to_num(fit.depth(d), nan=np.inf) for fit, d in zip(fits, disparities)]
 
 
 def vote_labels(points: np.ndarray, cameras: Sequence[Camera], masks: Sequence[np.ndarray],

@@ -17,7 +17,9 @@ component, passes the forward-backward test against the reverse direction's full
 weighted as in the loss over all pixels). Static pixels: the rendered dynamic-ness channel (1 for
 dynamic Gaussians) below 0.5 of the pixel's opacity; with `cam_target_static` (the paper's
 masking) the pixel must also land on a static pixel of b (b's rendered dynamic share, or b's
-motion mask when b was not composited). Directions are averaged; the returned terms are already
+motion mask when b was not composited); with motion masks given for a direction (the coarse
+stage, where the dynamic Gaussians are hidden and that channel is 0 everywhere) the pixel must
+also lie outside a's mask and sample b outside b's. Directions are averaged; the returned terms are already
 weighted:
 
     ff_mc = lambda_ff * lambda_mc * L_mc        ff_cr = lambda_ff * lambda_cr * L_cr
@@ -32,7 +34,7 @@ the static pixels around it, where the two frames then disagree).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -131,6 +133,8 @@ class FlowPair:
         target_render: [H, W, 3] render of b (L_cr terms), or None when b was not composited.
         target_dynamic: [H, W] float dynamic share of b's pixels (the target-side static mask), or None.
         reverse: index of the direction b -> a in the same list (occlusion tests), or None.
+        moving: ([H, W] bool mask of a, [H, W] bool mask of b) (True = moving), or None: camera
+            flow keeps a's masked pixels out and those sampling b's mask (the coarse stage).
     """
 
     source: ViewRender
@@ -138,6 +142,7 @@ class FlowPair:
     target_render: Tensor | None = None
     target_dynamic: Tensor | None = None
     reverse: int | None = None
+    moving: tuple[Tensor, Tensor] | None = None
 
 
 def _static_pixels(view: ViewRender) -> Tensor:
@@ -150,8 +155,16 @@ def dynamic_share(view: ViewRender) -> Tensor:
     return view.extras[DYNAMIC_KEY][..., 0] / view.alpha[..., 0].clamp_min(1e-6)
 
 
+def _off_moving(moving: tuple[Tensor, Tensor], flow: Tensor) -> Tensor:
+    """[H, W] bool: the source pixel lies outside its motion mask (moving[0]) and its sample in the
+    target (at q + flow, bilinear: all four neighbours) outside the target's mask (moving[1])."""
+    lands, _ = backward_warp(moving[1].to(flow.dtype).unsqueeze(-1), flow)
+    return ~moving[0] & (lands[..., 0] < 1e-6)
+
+
 def pair_losses(views: list[ViewRender], config: MatchingConfig, use_full: bool, use_cam: bool,
-                blurred: Callable[[int, float], tuple[Tensor, Tensor]] | None = None) -> PairResult:
+                blurred: Callable[[int, float], tuple[Tensor, Tensor]] | None = None,
+                moving: Sequence[Tensor] | None = None) -> PairResult:
     """Flow matching losses of a 2-view batch, both views composited (`pair_mode both`).
 
     Args:
@@ -159,12 +172,14 @@ def pair_losses(views: list[ViewRender], config: MatchingConfig, use_full: bool,
             ([H, W, 7] flow channels towards the other view), with `use_cam` or the dynamic-only
             options extras[DYNAMIC_KEY] ([H, W, 1]).
         blurred: (view index k, sigma) -> (blurred I_other, blurred I_k), for `blur_sigmas`.
+        moving: per view [H, W] bool motion masks (True = moving) kept out of camera-flow matching.
     """
     pairs = []
     for k in range(2):
         b = views[1 - k]
         target_dynamic = dynamic_share(b) if config.cam_target_static and use_cam else None
-        pairs.append(FlowPair(views[k], b.camera, b.image, target_dynamic, reverse=1 - k))
+        masks = None if moving is None else (moving[k], moving[1 - k])
+        pairs.append(FlowPair(views[k], b.camera, b.image, target_dynamic, reverse=1 - k, moving=masks))
     return flow_losses(pairs, config, [use_full] * 2, [use_cam] * 2, blurred)
 
 
@@ -217,6 +232,8 @@ def flow_losses(pairs: list[FlowPair], config: MatchingConfig, use_full: list[bo
             flow_c, valid_c = camera_flows[k]
             warped_c, inside = backward_warp(sources, flow_c)
             mask = valid_c & inside & _static_pixels(a)
+            if pair.moving is not None:
+                mask = mask & _off_moving(pair.moving, flow_c)
             if pair.target_dynamic is not None:
                 with torch.no_grad():  # the target's dynamic share where each pixel lands
                     landed = backward_warp(pair.target_dynamic.unsqueeze(-1).to(flow_c.dtype), flow_c)[0][..., 0]

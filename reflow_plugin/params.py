@@ -169,10 +169,17 @@ class ReFlowParams:
                                      "every frame with its keyframe)", check=_positive)
     canonical_voxel: float = param(0.01, "voxel side of the fused static cloud as a fraction of the median "
                                          "depth (0 = no downsampling)", check=_non_negative)
+    canonical_max_points: int = param(20_000, "at most this many fused static points: the voxel grows in x1.25 "
+                                              "steps until the cloud fits (noisy monocular depth thickens "
+                                              "surfaces; 0 = no limit)", check=_non_negative)
     canonical_iters: int = param(300, "Adam iterations of each alignment (keyframe graph, each clip)",
                                  check=_non_negative)
     canonical_shift: bool = param(False, "also fit a per-frame depth shift (besides the scale); off by default: "
                                          "with noisy pointmaps it trades against the scale and flattens depth")
+    canonical_check: bool = param(True, "check the canonical cloud before training (views, depth against the "
+                                        "sparse points or bounds, dynamic spread) and fall back when it fails; "
+                                        "--no-canonical_check keeps a failing cloud (with the warning), e.g. to "
+                                        "measure raw 'w/o align' on monocular disparity")
     canonical_cache: bool = param(True, "reuse the canonical space cached in <model>/reflow/canonical when the "
                                         "dataset, masks and settings are unchanged")
     # --- diagnostics ---

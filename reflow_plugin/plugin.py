@@ -16,7 +16,8 @@ Components (``--disable`` / ``--enable``, the paper's ablation switches):
 
 Hook by hook (order of hooks.py):
     on_scene_loaded      pair sampler (errors before long work: a single frame, no pairs)
-    initial_point_cloud  canonical space, or the host's cloud + labels by mask vote + seeded dynamic points
+    initial_point_cloud  canonical space (checked; canonical/check.py), or the host's cloud + labels by mask
+                         vote + seeded dynamic points
     build_model          GaussianModel with SeparatedDeformation (separation)
     on_model_created     labels -> deformation table; dynamic HexPlane box fitted to dynamic points
     select_batch         a pair (a, b) of nearby training frames (widening from the reference frame)
@@ -37,6 +38,7 @@ from __future__ import annotations
 
 import json
 import logging
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -81,6 +83,7 @@ class ReFlowPlugin(Plugin):
     components = ("comp_init", "separation", "full_flow", "cam_flow", "occlusion", "cam_occlusion", "ext_flow")
     default_disabled = ("occlusion", "cam_occlusion", "ext_flow")
     param_groups = {"ReFlowParams": ReFlowParams}
+    outputs = (RUN_FOLDER, "flow", "flow_metrics.json")  # what --overwrite clears of a ReFlow run
 
     def __init__(self, params: Mapping[str, Any] | None = None, enabled: frozenset[str] | None = None) -> None:
         super().__init__(params, enabled)
@@ -163,14 +166,31 @@ class ReFlowPlugin(Plugin):
         targets = self._targets(ctx)
         full = [self.is_enabled("full_flow") and self._full_now(ctx) and t[2] is not None for t in targets]
         cam = [self.is_enabled("cam_flow") and self._flow_step(ctx) and self._cam_between(ctx.views[k].camera, b)
+               and (not self._coarse_hidden(ctx) or self._coarse_moving(ctx.views[k].camera, b) is not None)
                for k, b, _ in targets]
         return full, cam
+
+    def _coarse_hidden(self, ctx) -> bool:
+        """Coarse stage with the dynamic Gaussians hidden: the rendered dynamic-ness channel is 0
+        everywhere, so it would call the moving object's pixels static."""
+        return ctx.stage == "coarse" and self._hides_dynamic(ctx)
+
+    def _coarse_moving(self, source, target) -> tuple[Tensor, Tensor] | None:
+        """The motion masks (source's, target's) that keep the moving object out of coarse-stage
+        camera flow; None when either frame has none (camera flow is then skipped for the pair)."""
+        a, b = self.mask_tensors.get(source.uid), self.mask_tensors.get(target.uid)
+        return None if a is None or b is None else (a.bool(), b.bool())
 
     def _dynamic(self, ctx) -> Tensor:
         return ctx.model.deformation_table
 
     def _run_dir(self, ctx) -> Path:
         return Path(ctx.model_path) / RUN_FOLDER
+
+    def min_train_frames(self) -> tuple[int, str]:
+        """Pairs (full_flow, cam_flow, ext_flow) and the canonical alignment (comp_init) need 2 frames."""
+        needs = [c for c in ("full_flow", "cam_flow", "ext_flow", "comp_init") if self.is_enabled(c)]
+        return (2, ", ".join(needs)) if needs else (1, "")
 
     # ------------------------------------------------------------------ set-up
     def on_scene_loaded(self, ctx) -> None:
@@ -192,7 +212,14 @@ class ReFlowPlugin(Plugin):
         if masks is not None:
             self.mask_tensors = {c.uid: torch.from_numpy(m).to(ctx.device) for c, m in zip(cameras, masks)}
         if self.is_enabled("comp_init") and canonical_available()[0]:
-            return self._canonical_cloud(ctx, masks)
+            cloud = self._canonical_cloud(ctx, masks)
+            if cloud is not None:
+                return cloud
+        return self._host_cloud(ctx, masks, source)
+
+    def _host_cloud(self, ctx, masks, source) -> PointCloud | None:
+        """Part 1: the host's cloud, labelled by mask vote, plus keyframe seeds (None: the host's as is)."""
+        cameras, host = ctx.train_cameras, ctx.point_cloud
         depths = aligned_depths(cameras, host.points, masks)
         labels = (vote_labels(host.points, cameras, masks, depths, self.p.label_vote) if masks is not None
                   else np.zeros(len(host), bool))
@@ -241,18 +268,64 @@ class ReFlowPlugin(Plugin):
         return (PointCloud(np.concatenate([c.points for c in clouds]), np.concatenate([c.colors for c in clouds])),
                 np.concatenate(times))
 
-    def _canonical_cloud(self, ctx, masks) -> PointCloud:
+    def _canonical_cloud(self, ctx, masks) -> PointCloud | None:
         """Canonical STATIC cloud + part 1's keyframe seeds (their depth aligned to the static points)
         by default; the paper's reference-frame dynamic cloud with --dynamic_keyframes 1 or without
-        separation (measured on the skating scene: the single reference cloud alone misses the skater)."""
+        separation (measured on the skating scene: the single reference cloud alone misses the skater).
+
+        The cloud is checked before training (canonical/check.py: views, depth against the host's
+        sparse points or the bounds, dynamic spread). A failing check logs one warning and falls
+        back: the per-frame fits of the dataset's disparity to the sparse points, else to the
+        bounds (no joint refinement, no raw pointmaps), else None (the caller uses the host's cloud
+        + part 1's seeds). Recorded in info["canonical_check"].
+        """
         from .canonical import build_canonical_space, options_from_params
+        from .canonical.check import check_initial_cloud
 
         options = options_from_params(self.p)
         options.device = str(ctx.device)
-        space = build_canonical_space(ctx.scene, masks, options,
-                                      cache_dir=self._run_dir(ctx) / "canonical", progress=not ctx.args.run.quiet)
+        anchors = ctx.point_cloud.points if ctx.point_cloud_source in ("dataset", "triangulated") else None
+        attempts = [("canonical space", options)]
+        cameras = ctx.train_cameras
+        keep = not self.p.canonical_check
+        disparity = options.provider in ("auto", "depth") and all(c.disparity is not None for c in cameras)
+        bounds = all(c.extras.get("near_far") is not None for c in cameras)
+        if not keep and disparity and (anchors is not None or bounds) and (not options.align or options.refine):
+            attempts.append((f"per-frame fits to the {'sparse points' if anchors is not None else 'bounds'}",
+                             replace(options, align=True, refine=False)))
+        failures = []
+        for what, opts in attempts:
+            space = build_canonical_space(ctx.scene, masks, opts, cache_dir=self._run_dir(ctx) / "canonical",
+                                          progress=not ctx.args.run.quiet, anchors=anchors)
+            static, dynamic, times, groups, described = self._compose(ctx, space, masks)
+            check = check_initial_cloud(static.points, groups, ctx.train_cameras, anchors)
+            if check.passed or keep:
+                break
+            failures.append(f"{what}: {check.failure}")
+        else:
+            space = None
+        if not check.passed and keep:
+            log.warning("initial cloud check failed (%s); kept (--no-canonical_check)", check.failure)
+        self.info["canonical_check"] = dict(check.as_dict(), failures=failures,
+                                            used=what if space is not None else "host cloud + part 1 seeds")
+        if failures:
+            log.warning("initial cloud check failed (%s); using the %s instead", "; ".join(failures),
+                        self.info["canonical_check"]["used"])
+        if space is None:
+            return None
         space.write_ply(self._run_dir(ctx))
         self.info["canonical"] = space.report
+        self.labels = np.concatenate([np.zeros(len(static), bool), np.ones(len(dynamic), bool)])
+        self.seed_times = np.concatenate([np.full(len(static), np.nan), times])
+        self.info["initial_cloud"] = f"{what}: {len(static)} static + {described}"
+        log.info("initial cloud: %s", self.info["initial_cloud"])
+        return PointCloud(np.concatenate([static.points, dynamic.points]),
+                          np.concatenate([static.colors, dynamic.colors]))
+
+    def _compose(self, ctx, space, masks):
+        """(static cloud, dynamic cloud, seed times, DynamicGroups for the check, description)."""
+        from .canonical.check import DynamicGroup
+
         static, cameras = space.static, ctx.train_cameras
         if len(static) == 0:  # every pixel masked or unconfident: the host's cloud stands in
             log.warning("canonical space: no static point; the host's %s cloud is used as the static cloud",
@@ -264,16 +337,13 @@ class ReFlowPlugin(Plugin):
         if keyframe_seeds:
             depths = aligned_depths(cameras, static.points, masks)
             dynamic, times = self._seed_keyframes(ctx, cameras, masks, depths, static)
-            what = f"{len(dynamic)} keyframe-seeded dynamic points"
-        else:
-            dynamic, times = space.dynamic, np.full(len(space.dynamic), np.nan)
-            what = f"{len(dynamic)} dynamic points (reference frame)"
-        self.labels = np.concatenate([np.zeros(len(static), bool), np.ones(len(dynamic), bool)])
-        self.seed_times = np.concatenate([np.full(len(static), np.nan), times])
-        self.info["initial_cloud"] = f"canonical space: {len(static)} static + {what}"
-        log.info("initial cloud: %s", self.info["initial_cloud"])
-        return PointCloud(np.concatenate([static.points, dynamic.points]),
-                          np.concatenate([static.colors, dynamic.colors]))
+            groups = [DynamicGroup(cameras[k], masks[k], dynamic.points[times == cameras[k].time])
+                      for k in sorted({k for k, c in enumerate(cameras) if c.image_name in self.info["seed"]["keyframes"]})]
+            return static, dynamic, times, groups, f"{len(dynamic)} keyframe-seeded dynamic points"
+        dynamic, times = space.dynamic, np.full(len(space.dynamic), np.nan)
+        groups = ([DynamicGroup(cameras[self.reference], masks[self.reference], dynamic.points)]
+                  if self.reference is not None and masks is not None else [])
+        return static, dynamic, times, groups, f"{len(dynamic)} dynamic points (reference frame)"
 
     def build_model(self, ctx) -> GaussianModel | None:
         if not self.is_enabled("separation"):
@@ -301,7 +371,7 @@ class ReFlowPlugin(Plugin):
                 model.deformation.fit_box(model.get_xyz.detach()[model.deformation_table], self.p.dynamic_aabb_margin)
             else:
                 log.warning("separation: no Gaussian is labelled dynamic, so the scene is modelled as static "
-                            "(no motion masks: label_source=%s)", self.p.label_source)
+                            "(label_source=%s; motion masks: %s)", self.p.label_source, self.info.get("mask_source"))
         self._record(ctx)
 
     def _dynamic_lr_multiplier(self, model: GaussianModel) -> float:
@@ -374,6 +444,9 @@ class ReFlowPlugin(Plugin):
         limit = self.p.pair_max_motion * float(np.median(neighbours))
         self.sampler.limit_motion(motion, limit)
         self.info["pair_max_motion_px"] = limit
+
+    def _hides_dynamic(self, ctx) -> bool:
+        return HIDDEN_OPACITY in ctx.model.registered_buffers
 
     def _hide_dynamic_in_coarse(self, ctx) -> None:
         """Coarse stage: dynamic Gaussians are made invisible (their opacity kept in a buffer that
@@ -467,7 +540,8 @@ class ReFlowPlugin(Plugin):
             elif use_cam and self.config.cam_target_static and camera.uid in self.mask_tensors:
                 dynamic = self.mask_tensors[camera.uid].to(ctx.views[k].colors.dtype)
             reverse = 1 - k if self.renders_both else None
-            pairs.append(FlowPair(ctx.views[k], camera, render, dynamic, reverse))
+            moving = self._coarse_moving(ctx.views[k].camera, camera) if use_cam and self._coarse_hidden(ctx) else None
+            pairs.append(FlowPair(ctx.views[k], camera, render, dynamic, reverse, moving))
         return pairs
 
     def extra_losses(self, ctx) -> dict[str, Tensor] | None:
@@ -549,6 +623,12 @@ class ReFlowPlugin(Plugin):
         tmp = path.with_suffix(".json.tmp")
         tmp.write_text(json.dumps(data, indent=1, sort_keys=True, default=str))
         tmp.replace(path)
+
+    def viewer_modes(self) -> dict[str, Any]:
+        """The web viewer's "full flow" mode (reflow_plugin/viewer_modes.py)."""
+        from .viewer_modes import VIEWER_MODES
+
+        return dict(VIEWER_MODES)
 
     # ------------------------------------------------------------------ persistence
     def state_dict(self) -> dict[str, Any]:

@@ -76,9 +76,9 @@ def compare(run_a: Path, run_b: Path, source: Path, iteration: int | None) -> st
     pixels = np.zeros(n_regions)
     sq_a, sq_b = np.zeros(n_regions), np.zeros(n_regions)
     for cam, a, b, gt in zip(cameras, renders_a, renders_b, gts):
-        if cam.mask is None:
+        if cam.evaluation_mask is None:
             raise SystemExit(f"error_by_region: {source} has no motion masks")
-        mask = cam.mask.cpu().numpy() > 0.5
+        mask = cam.evaluation_mask.cpu().numpy() > 0.5
         if mask.shape != gt.shape[:2]:
             raise SystemExit(f"error_by_region: mask {mask.shape} vs image {gt.shape[:2]}")
         labels = region_labels(mask)

@@ -37,7 +37,7 @@ FOURDGS_FIELDS = {
 }
 OURS = {ModelParams: {"dataset_type", "force_dataset_points"}, PipelineParams: {"backend", "device", "time_outside"},
         OptimizationParams: {"seed", "densify_max_gaussians", "prune_min_gaussians",
-                             "densify_grad_from"},
+                             "densify_grad_from", "stall_iterations"},
         ModelHiddenParams: set()}
 
 

@@ -48,7 +48,7 @@ def test_a_change_far_from_the_mask_is_attributed_to_the_far_band(tool, tmp_path
     worse[:, 30:] += 20                                   # only pixels > 20 px from the mask get worse
     _write_run(tmp_path / "a", [gt.copy()], [gt])
     _write_run(tmp_path / "b", [worse], [gt])
-    scene = SimpleNamespace(test_cameras=[SimpleNamespace(mask=torch.from_numpy(mask).float())])
+    scene = SimpleNamespace(test_cameras=[SimpleNamespace(evaluation_mask=torch.from_numpy(mask).float())])
     monkeypatch.setattr(tool, "load_scene", lambda source, eval: scene)
     table = tool.compare(tmp_path / "a", tmp_path / "b", tmp_path, None)
     far = next(line for line in table.splitlines() if line.startswith("| > 20 px"))

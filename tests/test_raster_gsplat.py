@@ -149,6 +149,12 @@ def test_projection_replaces_culled_garbage_and_keeps_the_contract(gsplat_module
     torch.testing.assert_close(proj.conics[vis], ref.conics[vis])
     torch.testing.assert_close(proj.cov2d[vis], ref.cov2d[vis], rtol=1e-4, atol=1e-5)  # inverse of the conic
     torch.testing.assert_close(proj.depths, ref.depths)
+    # culled but in front (off-screen, faint): the true projection, as the torch backend gives it
+    # (flow rendering sends view a's pixels there; issue 25 item 14), not the principal point
+    culled = ~vis & (ref.depths >= 0.01)
+    assert culled.sum() > 20
+    torch.testing.assert_close(proj.means2d[culled], ref.means2d[culled])
+    torch.testing.assert_close(proj.cov2d[culled], ref.cov2d[culled])
 
 
 def test_many_channels_are_split_across_calls(gsplat_module):

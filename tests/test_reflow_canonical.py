@@ -280,7 +280,9 @@ def test_plugin_uses_the_canonical_space(scene_path, tmp_path):
     finish_run(trainer, trainer.train())
     results = json.loads((out / "results.json").read_text())["reflow"]
     assert results["initial_cloud"].startswith("canonical space:") and "keyframe-seeded" in results["initial_cloud"]
-    assert results["canonical"]["alignment"]["mode"] == "coarse_to_fine"
+    # the dataset's disparity with the host's triangulated points: scale first, in inverse depth
+    assert results["canonical"]["alignment"]["mode"] == "inverse depth (anchored)"
+    assert results["canonical_check"]["passed"] and results["canonical_check"]["used"] == "canonical space"
     assert (out / "reflow" / "static.ply").is_file() and (out / "reflow" / "dynamic.ply").is_file()
     assert list((out / "reflow" / "canonical").glob("space_*.npz"))
     # --no-canonical_align with a single reference frame: the paper's w/o align cloud
@@ -289,4 +291,5 @@ def test_plugin_uses_the_canonical_space(scene_path, tmp_path):
     finish_run(trainer, trainer.train())
     results = json.loads((out2 / "results.json").read_text())["reflow"]
     assert "(reference frame)" in results["initial_cloud"]
-    assert results["canonical"]["alignment"]["mode"] == "none (w/o align)"
+    assert results["canonical"]["alignment"]["mode"] == "none (w/o align)"  # exact disparity: the check passes
+    assert results["canonical_check"]["passed"] and not results["canonical_check"]["failures"]

@@ -15,7 +15,7 @@ from baselines.fourdgs.app import REPO_ROOT, build_trainer, finish_run, render_f
 from baselines.fourdgs.plugins import PluginError, available_plugins
 from baselines.fourdgs.renderer import composite_view, prepare_view
 from baselines.synthetic import get_scene, simulate
-from reflow_plugin.labels import fit_disparity, vote_labels
+from reflow_plugin.labels import vote_labels
 from reflow_plugin.matching import MatchingConfig, pair_losses
 from reflow_plugin.pairs import PairError, PairSampler, curriculum_radius
 from reflow_plugin.params import ReFlowParams
@@ -46,9 +46,10 @@ def test_bad_input_is_rejected_before_training(tiny_scene, tmp_path, capsys):
     with pytest.raises(ConfigError, match="lambda_cf"):
         build_trainer(_argv(tiny_scene, tmp_path / "b", 1, 1, "--configs", str(config)))
     single = simulate(get_scene("balloon", frames=2, width=16, height=16), tmp_path / "two", progress=False)
-    trainer = build_trainer(_argv(single, tmp_path / "c", 1, 1))  # --eval: frame 0 tests, 1 frame trains
-    with pytest.raises(PairError, match="1 training frame"):
-        trainer.build()
+    # --eval: frame 0 tests, 1 frame trains; refused with the scene, before the model folder is claimed
+    with pytest.raises(ValueError, match="1 training frame.*--plugin reflow needs at least 2 training frames"):
+        build_trainer(_argv(single, tmp_path / "c", 1, 1))
+    assert not (tmp_path / "c").exists()
 
 
 def test_pair_sampler_and_curriculum():
@@ -84,16 +85,6 @@ def test_reference_frame_and_seeds_back_project_exactly(tiny_scene):
     np.testing.assert_allclose(z, depth[rows, cols], rtol=1e-5)
     labels = vote_labels(seeds.points, [cams[k]], [masks[k]])
     assert labels.all()
-
-
-def test_disparity_fit_recovers_scale_and_shift():
-    rng = np.random.default_rng(0)
-    inverse_depth = rng.uniform(0.1, 1.0, 200)
-    disparity = (inverse_depth - 0.05) / 2.5
-    disparity[:20] = rng.uniform(0, 1, 20)  # outliers
-    s, b = fit_disparity(disparity, inverse_depth)
-    assert s == pytest.approx(2.5, rel=1e-3) and b == pytest.approx(0.05, abs=1e-3)
-    assert fit_disparity(disparity[:5], inverse_depth[:5]) is None
 
 
 @pytest.fixture(scope="module")

@@ -107,8 +107,10 @@ def test_train_py_applies_the_policy_before_torch_unless_set(user_policy):
     env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
     if user_policy:
         env["OMP_WAIT_POLICY"] = user_policy
-    probe = ("import os, sys; import train; "
-             "print(os.environ.get('OMP_WAIT_POLICY'), 'torch' in sys.modules)")
+    # train.py imports torch only in main(), after its model-folder check: the policy comes first
+    probe = ("import os, sys; import train; torch_at_import = 'torch' in sys.modules; "
+             "import baselines.fourdgs.app; "
+             "print(os.environ.get('OMP_WAIT_POLICY'), torch_at_import, 'torch' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", probe], cwd=REPO_ROOT, env=env, capture_output=True, text=True,
                          check=True).stdout.split()
-    assert out == [user_policy or "PASSIVE", "True"]
+    assert out == [user_policy or "PASSIVE", "False", "True"]

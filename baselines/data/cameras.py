@@ -39,7 +39,8 @@ class Camera:
         camera_id: which physical (rig) camera took the image.
         mask: [H,W] float32 motion mask (1 = dynamic) or None.
         disparity: [H,W] float32 disparity map (as stored by the dataset) or None.
-        extras: other per-view tensors (e.g. "alpha" [H,W], "near_far" [2]).
+        extras: other per-view tensors (e.g. "alpha" [H,W], "near_far" [2], "eval_mask" [H,W]: a
+            ground-truth motion mask for evaluation only, when the dataset gives training none).
     """
 
     uid: int
@@ -78,6 +79,12 @@ class Camera:
         """[3] camera centre in world coordinates."""
         R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
         return -R.T @ t
+
+    @property
+    def evaluation_mask(self) -> Tensor | None:
+        """[H,W] motion mask the evaluation's region metrics use: the training mask, else the
+        dataset's ground-truth-only mask (extras["eval_mask"]), else None."""
+        return self.mask if self.mask is not None else self.extras.get("eval_mask")
 
     @property
     def device(self) -> torch.device:

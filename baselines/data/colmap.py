@@ -80,7 +80,32 @@ def read_times(source: Path, names: list[str]) -> list[float] | None:
                 or not 0.0 <= value <= 1.0:
             raise DatasetError(f"{path}: time of '{name}' is {value!r}, expected a number in [0, 1]")
         times.append(float(value))
+    warn_odd_times(path, names, times)
     return times
+
+
+def warn_odd_times(path: Path, names: list[str], times: list[float]) -> None:
+    """One warning naming frames that share a time or go back in time (image order).
+
+    Nothing here needs distinct times (views at one time are a multi-view pair for ReFlow), but a
+    copied or shuffled times.json usually is a mistake.
+    """
+    seen: dict[float, str] = {}
+    shared, backwards = [], []
+    for i, (name, t) in enumerate(zip(names, times)):
+        if t in seen:
+            shared.append(f"{seen[t]}/{name} ({t:g})")
+        seen.setdefault(t, name)
+        if i and t < times[i - 1]:
+            backwards.append(f"{names[i - 1]} ({times[i - 1]:g}) -> {name} ({t:g})")
+    parts = []
+    if shared:
+        parts.append(f"{len(shared)} frame(s) share a time: {', '.join(shared[:4])}{' ...' if len(shared) > 4 else ''}")
+    if backwards:
+        parts.append(f"{len(backwards)} step(s) go back in time in image order: "
+                     f"{', '.join(backwards[:4])}{' ...' if len(backwards) > 4 else ''}")
+    if parts:
+        log.warning("%s: %s", path, "; ".join(parts))
 
 
 def find_masks(source: Path, names: list[str]) -> list[Path] | None:

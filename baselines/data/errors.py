@@ -7,3 +7,7 @@ class DatasetError(ValueError):
 
     The message always names the culprit (file, folder, key or argument).
     """
+
+
+class EmptySplitError(DatasetError):
+    """No training view is left after the train/test split (the host adds what its plugins need)."""

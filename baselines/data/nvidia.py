@@ -6,6 +6,8 @@
     <scene>/images/            N images (or another folder named by `images`, e.g. images_2)
     <scene>/disp/*.npy         optional disparity maps, resized to the image resolution
     <scene>/motion_masks/*.png optional motion masks, 255 = dynamic
+    <scene>/gt/motion_masks/*.png  optional ground-truth masks for evaluation only (the simulator
+                               writes them; without motion_masks/ training never sees them)
     <scene>/points3D.ply       optional point cloud (also points3d.ply, points.npy, or sparse/0:
                                the COLMAP model LLFF poses come from shares their world frame)
 
@@ -118,6 +120,7 @@ def read_nvidia(source_path: Path | str, images: str = "images", resolution: int
                            f"has {n} poses")
     disp_files = _optional_folder(source, "disp", (".npy",), n)
     mask_files = _optional_folder(source, "motion_masks", IMAGE_EXTENSIONS, n)
+    eval_mask_files = None if mask_files else _optional_folder(source, "gt/motion_masks", IMAGE_EXTENSIONS, n)
     camera_ids = camera_ids_from_poses(viewmats)
     point_file = find_point_file(source)
     raw_points = None if point_file is None else RawPoints.read(point_file)  # fail early if malformed
@@ -130,6 +133,7 @@ def read_nvidia(source_path: Path | str, images: str = "images", resolution: int
             viewmat=viewmats[i], time=i / (n - 1) if n > 1 else 0.0, frame_index=i,
             camera_id=camera_ids[i], mask_path=mask_files[i] if mask_files else None,
             disparity_path=disp_files[i] if disp_files else None,
+            eval_mask_path=eval_mask_files[i] if eval_mask_files else None,
             extras={"near_far": bounds[i].astype(np.float32)}))
     background = (1.0, 1.0, 1.0) if white_background else (0.0, 0.0, 0.0)
     cameras = load_views(specs, resolution, background, same_size="all")

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from .cameras import Camera
-from .errors import DatasetError
+from .errors import DatasetError, EmptySplitError
 from .pointcloud import PointCloud
 
 log = logging.getLogger(__name__)
@@ -93,7 +93,8 @@ def assemble_scene(cameras: list[Camera], train_indices: list[int], test_indices
     train = renumber([cameras[i] for i in train_indices])
     test = renumber([cameras[i] for i in test_indices])
     if not train:
-        raise DatasetError(f"{source_path}: the training split is empty")
+        held = f"all {len(test)} frame(s) are test views: --no-eval trains on every frame" if test else "no frame"
+        raise EmptySplitError(f"{source_path}: the training split is empty ({held})")
     scene = SceneInfo(
         train_cameras=train, test_cameras=test, video_cameras=make_video_cameras(train, num_frames),
         point_cloud=point_cloud, nerf_normalization=nerfpp_normalization(train),

@@ -36,6 +36,11 @@ def load_json(path: Path) -> Any:
 def load_npy(path: Path) -> np.ndarray:
     """Load a numeric .npy array (no pickles); malformed files raise `DatasetError` naming the file."""
     require_file(path, ".npy file")
+    with open(path, "rb") as f:
+        head = f.read(16)
+    if not head.startswith(b"\x93NUMPY"):  # numpy would talk about pickles for any foreign file
+        shown = head[:12].decode("ascii", "replace").encode("unicode_escape").decode("ascii")
+        raise DatasetError(f"{path} is not a .npy file (no NumPy header; it starts with '{shown}')")
     try:
         array = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:

@@ -5,6 +5,7 @@ then call `load_views`, which does the long part: decoding, compositing, resizin
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -16,8 +17,10 @@ from .cameras import Camera
 from .errors import DatasetError
 from .geometry import scale_intrinsics
 from .image_io import composite, parallel_map, read_disparity, read_mask, read_rgba
-from .resolution import (log_auto_downscale, resize_disparity, resize_image, resize_mask, size_scale,
-                         target_size)
+from .resolution import (check_target_size, log_auto_downscale, require_scaled_copy, resize_disparity, resize_image,
+                         resize_mask, size_scale, target_size)
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -39,6 +42,7 @@ class ViewSpec:
     mask_path: Path | None = None
     disparity_path: Path | None = None
     extras: dict[str, np.ndarray] = field(default_factory=dict)
+    eval_mask_path: Path | None = None  # ground-truth mask for evaluation only (extras["eval_mask"])
 
 
 @dataclass
@@ -49,12 +53,14 @@ class _Loaded:
     K: np.ndarray
     mask: np.ndarray | None
     disparity: np.ndarray | None
+    transparent: bool = False  # an RGBA image whose alpha is 0 everywhere: nothing but background
+    eval_mask: np.ndarray | None = None
 
 
 def _require_paths(specs: Sequence[ViewSpec]) -> None:
     """Fail before decoding anything if a file is missing."""
     for spec in specs:
-        for path in (spec.image_path, spec.mask_path, spec.disparity_path):
+        for path in (spec.image_path, spec.mask_path, spec.disparity_path, spec.eval_mask_path):
             if path is not None and not Path(path).is_file():
                 raise DatasetError(f"missing file: {path}")
 
@@ -72,6 +78,9 @@ def load_views(specs: Sequence[ViewSpec], resolution: int | float, background: S
         raise DatasetError("no views to load")
     target_size(1000, 1000, resolution)  # rejects a bad `resolution` before any decoding
     _require_paths(specs)
+    first, _ = read_rgba(specs[0].image_path)  # one decode: the size the views will have, before the rest
+    check_target_size((first.shape[1], first.shape[0]), resolution, len(specs), str(Path(specs[0].image_path).parent))
+    del first
     logged: set[int] = set()
 
     def load_one(index: int) -> _Loaded:
@@ -82,13 +91,26 @@ def load_views(specs: Sequence[ViewSpec], resolution: int | float, background: S
         size = target_size(*file_size, resolution)
         K = scale_intrinsics(scale_intrinsics(spec.K, sx, sy), size[0] / file_size[0], size[1] / file_size[1])
         image = resize_image(composite(rgb, alpha, background), size)
+        transparent = alpha is not None and float(alpha.max()) < 1.0 / 255.0
         alpha = None if alpha is None or not keep_alpha else resize_image(alpha, size)
-        mask = None if spec.mask_path is None else resize_mask(read_mask(spec.mask_path), size)
-        disparity = None if spec.disparity_path is None else resize_disparity(read_disparity(spec.disparity_path), size)
-        return _Loaded(file_size, image, alpha, K, mask, disparity)
+        mask = disparity = None
+        if spec.mask_path is not None:
+            mask = read_mask(spec.mask_path)
+            require_scaled_copy(spec.mask_path, "motion mask", (mask.shape[1], mask.shape[0]), file_size)
+            mask = resize_mask(mask, size)
+        if spec.disparity_path is not None:
+            disparity = read_disparity(spec.disparity_path)
+            require_scaled_copy(spec.disparity_path, "disparity map", (disparity.shape[1], disparity.shape[0]), file_size)
+            disparity = resize_disparity(disparity, size)
+        eval_mask = None if spec.eval_mask_path is None else resize_mask(read_mask(spec.eval_mask_path), size)
+        return _Loaded(file_size, image, alpha, K, mask, disparity, transparent, eval_mask)
 
     loaded = parallel_map(load_one, list(range(len(specs))))
     _check_sizes(specs, [item.file_size for item in loaded], same_size)
+    empty = [spec.image_name for spec, item in zip(specs, loaded) if item.transparent]
+    if empty:
+        log.warning("%d image(s) fully transparent (alpha 0 everywhere): they train as plain background: %s%s",
+                    len(empty), ", ".join(empty[:6]), " ..." if len(empty) > 6 else "")
     for item in loaded:
         if item.file_size[0] not in logged:
             log_auto_downscale(item.file_size[0], resolution)
@@ -99,6 +121,8 @@ def load_views(specs: Sequence[ViewSpec], resolution: int | float, background: S
         extras = {k: torch.as_tensor(np.asarray(v, np.float32)) for k, v in spec.extras.items()}
         if item.alpha is not None:
             extras["alpha"] = torch.from_numpy(np.ascontiguousarray(item.alpha, np.float32))
+        if item.eval_mask is not None:
+            extras["eval_mask"] = torch.from_numpy(item.eval_mask.astype(np.float32))
         cameras.append(Camera(
             uid=uid, image_name=spec.image_name, width=item.image.shape[1], height=item.image.shape[0],
             K=torch.from_numpy(item.K.astype(np.float32)), viewmat=torch.from_numpy(spec.viewmat.astype(np.float32)),

@@ -3,25 +3,29 @@
 `train_from_argv` turns a train.py command line into a finished run: plugins are resolved first
 (they add parameter groups and flags), then flags and config files are parsed, components
 toggled, the dataset loaded and checked, the model trained, the held-out views evaluated and the
-novel-time video written. Every input check happens before the first training iteration.
+novel-time video written. Every input check happens before the first training iteration; the
+model folder is checked (run_folder.py) before the dataset is read, and claimed (run.json) only
+once everything loaded. `run_cli` turns input errors, OS failures (a full disk, a read-only
+folder) and Ctrl-C into one line each.
 """
 from __future__ import annotations
 
 import logging
-import os
 import random
-import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
 
 from baselines import thread_policy
+from baselines.cli_exit import flag_value as _flag_value, has_flag as _has_flag
+from baselines.cli_exit import interrupted_line, resume_command, run_cli  # noqa: F401  (train.py, render.py, tests)
+from baselines.run_folder import (RunFolder, RunIdentity, TrainingInterrupted, check_run_folder, check_saved_iteration,
+                                  default_model_path)
 
-from .family_config import dataset_family, default_config, family_background, log_decision, strip_bare_defaults
 from .evaluate import EvalResult, evaluate_cameras, render_video, write_metrics
+from .family_config import dataset_family, default_config, family_background, log_decision, strip_bare_defaults
 from .plugins import Plugin, load_plugin_class, resolve_components
 from .trainer import Trainer, TrainResult
 
@@ -51,22 +55,6 @@ def embedded_scene_path(root: Path = REPO_ROOT) -> Path:
     return path
 
 
-def _has_flag(argv: list[str], *names: str) -> bool:
-    return any(a == n or a.startswith(n + "=") for a in argv for n in names)
-
-
-def _flag_value(argv: list[str], *names: str) -> str | None:
-    """The last value of a single-valued flag (``-s X`` or ``-s=X``), or None."""
-    value = None
-    for i, arg in enumerate(argv):
-        for name in names:
-            if arg == name and i + 1 < len(argv):
-                value = argv[i + 1]
-            elif arg.startswith(name + "="):
-                value = arg.split("=", 1)[1]
-    return value
-
-
 def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)
@@ -78,7 +66,9 @@ def build_trainer(argv: list[str]) -> Trainer:
     from arguments import parse_train_args, peek_plugins, write_cfg_args
     from arguments.saved import model_dir_of_checkpoint
     from baselines.data import load_scene
+    from baselines.data.errors import EmptySplitError
 
+    typed = list(argv)
     argv, bare_defaults = strip_bare_defaults(list(argv))
     embedded = not _has_flag(argv, "-s", "--source_path")
 
@@ -104,7 +94,9 @@ def build_trainer(argv: list[str]) -> Trainer:
     components = resolve_components(plugin_classes, args.run.disable, args.run.enable)
     seed_everything(args.opt.seed)
 
-    source = embedded_scene_path() if embedded else Path(args.model.source_path)
+    source = REPO_ROOT / "data" / "synthetic" / EMBEDDED_SCENE if embedded else Path(args.model.source_path)
+    folder = _check_model_folder(args, typed, source, plugin_classes, components)  # before any long work
+    source = embedded_scene_path() if embedded else source
     args.model.source_path = str(source)
     if args.sources.get("ModelParams.white_background", "default") == "default":
         family = "synthetic" if embedded else dataset_family(source, args.model.dataset_type)
@@ -114,26 +106,80 @@ def build_trainer(argv: list[str]) -> Trainer:
             args.sources["ModelParams.white_background"] = f"{family} family"
             log.info("background: %s (%s family; -w / --no-white_background to choose)",
                      "white" if white else "black", family)
-    scene = load_scene(
-        source, dataset_type=args.model.dataset_type, images=args.model.images,
-        resolution=args.model.resolution, eval=args.model.eval,
-        white_background=args.model.white_background, llffhold=args.model.llffhold,
-    )
-    name = args.run.expname or source.name
-    model_path = Path(args.model.model_path or REPO_ROOT / "output" / name)
-    args.model.model_path = str(model_path)
-    model_path.mkdir(parents=True, exist_ok=True)
-    write_cfg_args(model_path, args, {"_components": {name: sorted(active) for name, active in components.items()},
-                                       "_dataset_layout": scene.metadata.get("layout_detection"),
-                                       "_default_config": decision.as_dict() if decision else None})
-
     plugins: list[Plugin] = [
         cls({g: args.extra[g] for g in cls.param_groups}, components[cls.name]) for cls in plugin_classes
     ]
+    try:
+        scene = load_scene(
+            source, dataset_type=args.model.dataset_type, images=args.model.images,
+            resolution=args.model.resolution, eval=args.model.eval,
+            white_background=args.model.white_background, llffhold=args.model.llffhold,
+        )
+    except EmptySplitError as err:
+        raise EmptySplitError(f"{err}{_frame_needs(plugins, 0, prefix='; ')}") from None
+    if len(scene.train_cameras) < max([1] + [p.min_train_frames()[0] for p in plugins]):
+        raise ValueError(f"{source}: {len(scene.train_cameras)} training frame(s){_frame_needs(plugins, len(scene.train_cameras))}")
+    model_path = folder.path
+    folder.commit()
+    try:
+        write_cfg_args(model_path, args, {"_components": {name: sorted(active) for name, active in components.items()},
+                                           "_dataset_layout": scene.metadata.get("layout_detection"),
+                                           "_default_config": decision.as_dict() if decision else None})
+        for plugin in plugins:
+            log.info("plugin %s: components %s", plugin.name, sorted(plugin.enabled) or "none")
+        log.info("threads: %s", thread_policy.last_decision)
+        trainer = Trainer(args, scene, plugins, model_path)  # e.g. --device cuda without CUDA fails here
+    except BaseException:
+        folder.abandon()  # nothing trained yet: the folder goes back to how it was
+        raise
+    trainer.run_folder = folder
+    return trainer
+
+
+def _check_model_folder(args, argv: list[str], source: Path, plugin_classes: list[type[Plugin]],
+                        components: dict[str, frozenset[str]]) -> RunFolder:
+    """Where the run goes and whether that folder may take it (run_folder.py); nothing is written."""
+    start = args.run.start_checkpoint
+    if args.model.model_path:
+        model_path = Path(args.model.model_path)
+    elif start and Path(start).is_file() and (Path(start).parent / "run.json").is_file():
+        model_path = Path(start).parent  # continuing a chkpnt of a run folder: that folder
+    elif args.run.expname:
+        model_path = REPO_ROOT / "output" / args.run.expname
+    else:
+        model_path = default_model_path(REPO_ROOT / "output" / source.name)
+    args.model.model_path = str(model_path)
+    identity = RunIdentity.of([c.name for c in plugin_classes], components, str(source))
+    outputs = [name for cls in plugin_classes for name in getattr(cls, "outputs", ())]
+    for name in _recorded_plugins(model_path):
+        try:
+            outputs += list(getattr(load_plugin_class(name), "outputs", ()))
+        except ValueError:
+            pass  # a plugin not installed now: its files are kept
+    plan = check_run_folder(model_path, identity, overwrite=args.run.overwrite, start_checkpoint=start,
+                            plugin_outputs=outputs)
+    return RunFolder(plan, identity, ["train.py", *argv])
+
+
+def _frame_needs(plugins: list[Plugin], have: int, prefix: str = ": ") -> str:
+    """What the plugins need in training frames beyond `have` (one clause per plugin), or ''."""
+    parts = []
     for plugin in plugins:
-        log.info("plugin %s: components %s", plugin.name, sorted(plugin.enabled) or "none")
-    log.info("threads: %s", thread_policy.last_decision)
-    return Trainer(args, scene, plugins, model_path)
+        count, what = plugin.min_train_frames()
+        if count > max(have, 1) or (have == 0 and count > 1):
+            names = ",".join(c.strip() for c in what.split(",") if c.strip())
+            parts.append(f"--plugin {plugin.name} needs at least {count} training frames for {what} "
+                         f"(more frames, or --disable {names})")
+    return prefix + "; ".join(parts) if parts else ""
+
+
+def _recorded_plugins(model_path: Path) -> list[str]:
+    from arguments.saved import read_saved_plugins
+
+    try:
+        return read_saved_plugins(model_path) if model_path.is_dir() else []
+    except ValueError:
+        return []
 
 
 def finish_run(trainer: Trainer, result: TrainResult) -> RunSummary:
@@ -165,23 +211,25 @@ def train_from_argv(argv: list[str]) -> RunSummary:
     trainer = build_trainer(argv)
     if trainer.run.detect_anomaly:
         torch.autograd.set_detect_anomaly(True)
-    result = trainer.train()
-    return finish_run(trainer, result)
-
-
-def run_cli(entry: Callable[[], int]) -> None:
-    """Run `entry`; input errors (bad flags, files, config keys, plugins) and a diverged training
-    (non-finite loss or gradients, named) print one line, exit 2.
-
-    Set FOURDGS_TRACEBACK=1 to see the full traceback instead.
-    """
+    folder = trainer.run_folder
     try:
-        sys.exit(entry())
-    except (ValueError, FileNotFoundError, NotADirectoryError, FloatingPointError) as exc:
-        if os.environ.get("FOURDGS_TRACEBACK"):
-            raise
-        print(f"error: {exc}", file=sys.stderr)
-        sys.exit(2)
+        summary = finish_run(trainer, trainer.train())
+    except TrainingInterrupted as stop:
+        folder.end("interrupted", stopped_at=f"{stop.stage} iteration {stop.iteration}",
+                   last_checkpoint=str(stop.checkpoint), resume=resume_command(argv, folder.path, stop.checkpoint))
+        raise
+    except BaseException as exc:
+        if trainer.ctx.iteration == 0 and folder.writes == 0:
+            folder.abandon()  # a bad input found before the first iteration: leave the folder as it was
+        else:
+            state = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+            folder.end(state, reason=f"{type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''}",
+                       stopped_at=f"{trainer.ctx.stage} iteration {trainer.ctx.iteration}")
+        raise
+    finally:
+        trainer.run_log.close()
+    folder.end("finished", stopped_at=f"{trainer.ctx.stage} iteration {trainer.ctx.iteration}")
+    return summary
 
 
 @dataclass
@@ -191,6 +239,20 @@ class LoadedRun:
     trainer: Trainer
     args: object
     iteration: int
+
+
+def require_run(path: str | os.PathLike) -> Path:
+    """`path` if it is a trained model directory (a `point_cloud/iteration_N/point_cloud.ply`), else
+    ValueError naming it: one line, before any loading (view.py, python -m baselines.export)."""
+    from .checkpoint import PLY_FILE, find_latest_iteration, point_cloud_dir
+
+    path = Path(path)
+    if not path.is_dir():
+        raise ValueError(f"{path}: no such run folder (-m/--model_path)")
+    iteration = find_latest_iteration(path)
+    if iteration is None or not (point_cloud_dir(path, iteration) / PLY_FILE).is_file():
+        raise ValueError(f"{path} is not a trained run: no point_cloud/iteration_N/{PLY_FILE} (train.py -m {path} writes one)")
+    return path
 
 
 def load_run(argv: list[str]) -> LoadedRun:
@@ -219,6 +281,7 @@ def load_run(argv: list[str]) -> LoadedRun:
     pc_dir = point_cloud_dir(model_path, iteration)
     if not (pc_dir / "point_cloud.ply").is_file():
         raise FileNotFoundError(f"{pc_dir}: no point_cloud.ply (trained iterations: {find_latest_iteration(model_path)})")
+    check_saved_iteration(model_path, pc_dir)  # never metrics of another run's leftover folder
     scene = load_scene(
         args.model.source_path, dataset_type=args.model.dataset_type, images=args.model.images,
         resolution=args.model.resolution, eval=args.model.eval,

@@ -12,6 +12,10 @@ Layout (4DGS's, so either code base reads the other's output)::
 
 Every file is written to a temporary file in the same folder, flushed, fsync'ed and renamed
 over the target, so a killed run leaves either the old file or the new one, never a torn one.
+An iteration folder is written whole under a temporary name (``point_cloud/.iteration_N.tmp-*``)
+and renamed into place once complete, so `find_latest_iteration`, render.py and a resume never
+see a half-written one. A failed write (full disk, read-only folder) raises ``SaveError`` (an
+``OSError``) naming the file and the OS reason, after removing what it had written.
 Loading checks everything (shapes, SH degree, state-dict keys) before changing the model and
 raises ``ValueError`` naming the file.
 """
@@ -20,6 +24,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import tempfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -34,6 +39,7 @@ from torch import Tensor
 from baselines.fourdgs.deformation import check_deformation_state
 from baselines.fourdgs.gaussian_model import GaussianModel
 from baselines.fourdgs.numpy_globals import allow_numpy_scalars
+from baselines.fourdgs.state import GaussianState
 
 PLY_FILE = "point_cloud.ply"
 DEFORMATION_FILE = "deformation.pth"
@@ -47,22 +53,56 @@ FORMAT_VERSION = 1
 
 # --------------------------------------------------------------------------------------------
 # Atomic writers.
+class SaveError(OSError):
+    """A file or folder could not be written: the path and the OS reason, in one line."""
+
+    def __init__(self, path: str | os.PathLike, cause: BaseException) -> None:
+        if isinstance(cause, SaveError):
+            reason, errno = cause.reason, cause.errno
+        else:
+            os_error = _os_cause(cause)
+            errno = os_error.errno if os_error is not None else None
+            text = str(cause).strip()
+            reason = (f"[Errno {os_error.errno}] {os_error.strerror}" if os_error is not None and os_error.strerror
+                      else text.splitlines()[0] if text else type(cause).__name__)
+        super().__init__(errno, reason)
+        self.path, self.reason = Path(path), reason
+
+    def __str__(self) -> str:
+        return f"cannot write {self.path}: {self.reason}"
+
+
+def _os_cause(error: BaseException | None) -> OSError | None:
+    """The OSError behind `error` (torch reports a failed write as a RuntimeError whose context it is)."""
+    seen = 0
+    while error is not None and seen < 8:
+        if isinstance(error, OSError):
+            return error
+        error, seen = error.__cause__ or error.__context__, seen + 1
+    return None
+
+
 def _atomic_write(path: str | os.PathLike, write: Callable[[IO[bytes]], None]) -> Path:
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle = tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp", delete=False)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle = tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp", delete=False)
+    except OSError as err:
+        raise SaveError(path, err) from None
     try:
         with handle:
             write(handle)
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(handle.name, path)
-    except BaseException:
+    except BaseException as err:
         try:
             os.unlink(handle.name)
         except FileNotFoundError:
             pass
-        raise
+        if isinstance(err, SaveError) or not (isinstance(err, OSError) or _os_cause(err) is not None):
+            raise
+        raise SaveError(path, err) from None
     _fsync_directory(path.parent)
     return path
 
@@ -98,7 +138,17 @@ def _torch_load(path: Path, map_location: Any, trusted: bool = False) -> Any:
         with allow_numpy_scalars():  # 4DGS checkpoints hold numpy.float64 learning rates
             return torch.load(path, map_location=map_location, weights_only=not trusted)
     except Exception as err:  # torch raises many types for corrupt/foreign files
-        raise ValueError(f"{path}: cannot be read as a torch file ({type(err).__name__}: {err})") from None
+        raise ValueError(f"{path}: cannot be read as a torch file of this project or 4DGS ({_load_reason(err)})") from None
+
+
+def _load_reason(err: Exception) -> str:
+    """One line for torch.load's failure (its weights-only message is a page of advice)."""
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    if lines and lines[0].startswith("Weights only load failed"):
+        detail = next((line for line in lines[1:] if not line.startswith(("Please file", "Check the"))), "")
+        return ("it holds objects other than tensors and numbers, or is not a torch file"
+                + (f": {detail}" if detail else ""))
+    return f"{type(err).__name__}: {lines[0] if lines else ''}".rstrip(": ")
 
 
 # --------------------------------------------------------------------------------------------
@@ -137,27 +187,34 @@ def ply_attribute_names(num_rest_coefficients: int) -> list[str]:
 
 
 def gaussians_to_ply(model: GaussianModel) -> PlyData:
-    """The model's Gaussians as a binary little-endian 3DGS PLY.
+    """The model's stored (canonical) Gaussians as a binary little-endian 3DGS PLY."""
+    return state_to_ply(model.canonical_state())
 
-    SH features are written channel-major (all R coefficients, then G, then B), i.e. the
-    transposed [N, 3, K] layout flattened, as 3DGS/4DGS do.
+
+def state_to_ply(state: GaussianState) -> PlyData:
+    """N Gaussians (pre-activation, e.g. ``model.deform(t, "fine")``) as a binary little-endian 3DGS PLY.
+
+    The layout Inria's 3DGS and its viewers read: x y z, nx ny nz (zeros), f_dc_0..2, f_rest_*,
+    opacity (logit), scale_0..2 (log), rot_0..3 (w first, unnormalised). SH features are written
+    channel-major (all R coefficients, then G, then B), i.e. the transposed [N, 3, K] layout
+    flattened, as 3DGS/4DGS do.
     """
-    count = model.num_gaussians
+    count = state.num_gaussians
 
     def flat(t: Tensor) -> np.ndarray:
         return t.detach().float().cpu().reshape(count, -1).numpy()
 
     columns = [
-        flat(model._xyz),
+        flat(state.means),
         np.zeros((count, 3), dtype=np.float32),
-        flat(model._features_dc.transpose(1, 2)),
-        flat(model._features_rest.transpose(1, 2)),
-        flat(model._opacity),
-        flat(model._scaling),
-        flat(model._rotation),
+        flat(state.shs[:, :1].transpose(1, 2)),
+        flat(state.shs[:, 1:].transpose(1, 2)),
+        flat(state.opacity_logits),
+        flat(state.log_scales),
+        flat(state.rotations),
     ]
     values = np.ascontiguousarray(np.concatenate(columns, axis=1), dtype="<f4")
-    names = ply_attribute_names(model._features_rest.shape[1])
+    names = ply_attribute_names(state.shs.shape[1] - 1)
     records = values.view(np.dtype([(n, "<f4") for n in names])).reshape(count)
     return PlyData([PlyElement.describe(records, "vertex")], byte_order="<")
 
@@ -220,9 +277,54 @@ def read_gaussian_ply(path: str | os.PathLike, sh_degree: int) -> dict[str, Tens
 
 # --------------------------------------------------------------------------------------------
 # point_cloud/iteration_N folders.
-def save_point_cloud_dir(model: GaussianModel, directory: str | os.PathLike) -> Path:
-    """Write the 4DGS files plus ``extra_buffers.pth`` into ``directory`` (created if needed)."""
+def save_point_cloud_dir(model: GaussianModel, directory: str | os.PathLike,
+                         before_publish: Callable[[Path], None] | None = None) -> Path:
+    """Write the 4DGS files plus ``extra_buffers.pth`` as the folder ``directory``, atomically.
+
+    The files go into a temporary sibling folder; ``before_publish(temporary folder)`` may add
+    files (the plugins' ``on_save``); then the folder is renamed to ``directory`` (an existing
+    one is replaced). On failure nothing is left but what was there before (``SaveError``).
+    """
     directory = Path(directory)
+    try:
+        directory.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(dir=directory.parent, prefix=f".{directory.name}.tmp-"))
+    except OSError as err:
+        raise SaveError(directory, err) from None
+    try:
+        _write_point_cloud_files(model, staging)
+        if before_publish is not None:
+            before_publish(staging)
+        _publish_folder(staging, directory)
+    except SaveError as err:  # name the folder being saved, not its temporary name
+        shutil.rmtree(staging, ignore_errors=True)
+        file = err.path.relative_to(staging) if err.path.is_relative_to(staging) else None
+        raise SaveError(directory / file if file else directory, err) from None
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return directory
+
+
+def _publish_folder(staging: Path, directory: Path) -> None:
+    """Rename the complete `staging` folder to `directory` (replacing an old one)."""
+    old = None
+    try:
+        if directory.exists():
+            old = directory.with_name(f".{directory.name}.old-{os.getpid()}")
+            shutil.rmtree(old, ignore_errors=True)
+            os.replace(directory, old)
+        os.replace(staging, directory)
+    except OSError as err:
+        if old is not None and not directory.exists():
+            os.replace(old, directory)
+        raise SaveError(directory, err) from None
+    _fsync_directory(directory.parent)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _write_point_cloud_files(model: GaussianModel, directory: Path) -> None:
     state = model._deformation.state_dict()
     for key in state:
         state[key] = state[key].detach().cpu()
@@ -238,7 +340,6 @@ def save_point_cloud_dir(model: GaussianModel, directory: str | os.PathLike) -> 
         "parameter_lrs": dict(model.registered_parameter_lrs),
     }
     atomic_save(extras, directory / EXTRA_FILE)
-    return directory
 
 
 def _module_device(module: torch.nn.Module) -> torch.device:

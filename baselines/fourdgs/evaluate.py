@@ -10,7 +10,8 @@ results.json = {"ours_<iter>": {"PSNR", "SSIM", "LPIPS-vgg", "LPIPS-alex"}} and 
 same keys mapping image name -> value. LPIPS is null when the lpips package or its weights are
 unavailable, and results.json then says why under "LPIPS_unavailable"; it is never faked.
 
-Dynamic-region metrics (ours): when the dataset has motion masks, "PSNR-dynamic" / "SSIM-dynamic"
+Dynamic-region metrics (ours): when the dataset has motion masks (or ground-truth masks for
+evaluation only, `Camera.evaluation_mask`), "PSNR-dynamic" / "SSIM-dynamic"
 are computed inside each test view's mask and "PSNR-static" / "SSIM-static" outside it (SSIM: the
 3DGS SSIM map averaged over those pixels). Full-image PSNR is dominated by the static background;
 these say whether the moving object is there at all. A view whose mask is empty (or full) has
@@ -22,7 +23,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING, Iterable, Sequence
 
 import cv2
 import numpy as np
@@ -114,8 +115,8 @@ def evaluate_cameras(
             value, reason = lpips_or_reason(image, gt, net=net)
             row[f"LPIPS-{net}"] = value
             result.lpips_unavailable = reason or result.lpips_unavailable
-        if cam.mask is not None:
-            row.update(region_metrics(image, gt, cam.mask))
+        if cam.evaluation_mask is not None:
+            row.update(region_metrics(image, gt, cam.evaluation_mask))
         result.per_view[name] = row
         for key, value in row.items():
             if value is not None:
@@ -172,24 +173,40 @@ def render_video(
     model: GaussianModel, cameras: Sequence[Camera], stage: str, background: Tensor, path: Path,
     backend: str = "auto", fps: int = 30,
 ) -> Path:
-    """Render cameras in order into an mp4 (OpenCV 'mp4v'), written to a temp name then renamed.
+    """Render cameras in order into an mp4 (see `write_video`)."""
+    if not cameras:
+        raise ValueError("render_video needs at least one camera")
+    frames = (to_uint8(render(model, cam, stage, background, backend).image) for cam in cameras)
+    return write_video(frames, path, fps)
+
+
+def write_video(frames: Iterable[np.ndarray], path: Path, fps: int = 30) -> Path:
+    """Write [H, W, 3] uint8 BGR frames (all one size) into an mp4 (OpenCV 'mp4v'), through a temp
+    name renamed at the end.
 
     The encoder needs even sizes and would crop an odd row/column (240x135 -> 240x134): odd-sized
     frames are padded instead (edge pixels repeated), so every rendered pixel is in the video.
     """
-    if not cameras:
-        raise ValueError("render_video needs at least one camera")
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.stem + ".tmp" + path.suffix)
-    w, h = cameras[0].width, cameras[0].height
-    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w + w % 2, h + h % 2))
-    if not writer.isOpened():
-        raise OSError(f"OpenCV could not open a video writer for {path}")
+    writer, size = None, None
     try:
-        for cam in cameras:
-            writer.write(pad_to_even(to_uint8(render(model, cam, stage, background, backend).image)))
+        for frame in frames:
+            frame = pad_to_even(frame)
+            if writer is None:
+                size = (frame.shape[1], frame.shape[0])
+                writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
+                if not writer.isOpened():
+                    raise OSError(f"OpenCV could not open a video writer for {path}")
+            elif (frame.shape[1], frame.shape[0]) != size:
+                raise ValueError(f"write_video: frame of size {frame.shape[1]}x{frame.shape[0]}, expected {size[0]}x{size[1]}")
+            writer.write(frame)
     finally:
-        writer.release()
+        if writer is not None:
+            writer.release()
+    if writer is None:
+        raise ValueError(f"write_video: no frames for {path}")
     tmp.replace(path)
     return path
 

@@ -42,6 +42,8 @@ class Plugin:
         default_disabled: components off unless ``--enable``d.
         param_groups: config groups the plugin adds, {group name: dataclass}; they are settable
             from config files (``ReFlowParams = dict(...)``) and the command line like 4DGS's.
+        outputs: names of the files/folders the plugin writes in the model folder (what
+            ``--overwrite`` clears besides the host's outputs; anything else is kept).
     Instance attributes set by the host: ``params`` ({group name: dataclass instance}) and
     ``enabled`` (the frozenset of active components).
     """
@@ -50,10 +52,16 @@ class Plugin:
     components: ClassVar[tuple[str, ...]] = ()
     default_disabled: ClassVar[tuple[str, ...]] = ()
     param_groups: ClassVar[dict[str, type]] = {}
+    outputs: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, params: Mapping[str, Any] | None = None, enabled: frozenset[str] | None = None) -> None:
         self.params = dict(params or {})
         self.enabled = frozenset(self.components) - frozenset(self.default_disabled) if enabled is None else enabled
+
+    def min_train_frames(self) -> tuple[int, str]:
+        """(training frames this plugin needs with its enabled components, what needs them); the host
+        checks it right after loading the scene, and names it in an empty-split error."""
+        return 1, ""
 
     def is_enabled(self, component: str) -> bool:
         if component not in self.components:
@@ -151,6 +159,12 @@ class Plugin:
 
     def on_load(self, ctx: TrainContext, point_cloud_dir: Any) -> None:
         """A point_cloud/iteration_N directory was loaded into ctx.model (resume or upgrade)."""
+
+    # --- viewer -----------------------------------------------------------------------------
+    def viewer_modes(self) -> dict[str, Callable[..., Any]]:
+        """Extra render modes of the web viewer (view.py): {name: fn(frame) -> (picture, caption)},
+        frame a `baselines.viewer.frame.ViewFrame`, picture [H, W, 3] uint8 RGB, caption a short str."""
+        return {}
 
 
 _LOCAL_REGISTRY: dict[str, Callable[[], type[Plugin]]] = {}

@@ -8,7 +8,10 @@ does), optimizer step. The hook points and their order are listed in hooks.py.
 
 Differences from 4DGS, on purpose: the camera sampler and global RNG states are saved in training
 checkpoints (a resumed run continues exactly like an uninterrupted one); the optimizer also steps
-on a stage's last iteration; files are written atomically.
+on a stage's last iteration; files are written atomically, iteration folders whole (checkpoint.py).
+A checkpoint records the plugins and components that wrote it, and resuming it under others is an
+error naming both (run_folder.py). Ctrl-C stops after the current iteration with a checkpoint
+(interrupt.py).
 """
 from __future__ import annotations
 
@@ -38,10 +41,14 @@ from .densification import densification_step
 from .final_stretch import final_stretch
 from .gaussian_model import GaussianModel
 from .hooks import HookRunner, TrainContext
+from .interrupt import StopFlag, deferred_interrupt
 from .plugins import Plugin
 from .renderer import composite_view, prepare_view, render
+from baselines.run_folder import (RunFolder, RunIdentity, TrainingInterrupted, check_resume_identity,
+                                  check_upgrade_plugins)
 from .run_log import RunLog, StageTimer
 from .sampler import CameraSampler
+from .stall_guard import StallGuard
 
 log = logging.getLogger(__name__)
 STAGES = ("coarse", "fine")
@@ -120,6 +127,15 @@ class Trainer:
         self.timer = StageTimer()
         self.train_seconds = 0.0  # wall / CPU seconds spent in training steps (this process)
         self.train_cpu_seconds = 0.0
+        self.run_folder: RunFolder | None = None  # set by the app: run.json records saves and the end
+        self._stop: StopFlag | None = None
+
+    def identity(self) -> RunIdentity:
+        """The plugins and active components of this run (what a checkpoint must match to resume)."""
+        plugins = self.hooks.plugins
+        return RunIdentity.of([p.name for p in plugins], {p.name: p.enabled for p in plugins},
+                              self.args.model.source_path)
+        self.stall_guard = StallGuard(0)  # armed by train() for a run that starts from its initial cloud
 
     # ------------------------------------------------------------------ set-up
     def build(self) -> None:
@@ -164,16 +180,19 @@ class Trainer:
         resume = self._resume_point()
         if self.ctx.model is None:
             self.build()
-        for stage in STAGES:
-            if resume is not None and STAGES.index(stage) < STAGES.index(resume["stage"]):
-                continue
-            total = self.opt.coarse_iterations if stage == "coarse" else self.opt.iterations
-            first = 1
-            self._begin_stage(stage, total)
-            if resume is not None and resume["stage"] == stage:
-                first = self._restore(resume) + 1
-                resume = None
-            self._run_stage(stage, first, total)
+        if resume is None:  # a fresh run: stop early if it cannot learn (stall_guard.py)
+            self.stall_guard = StallGuard(self.opt.stall_iterations)
+        with deferred_interrupt() as self._stop:
+            for stage in STAGES:
+                if resume is not None and STAGES.index(stage) < STAGES.index(resume["stage"]):
+                    continue
+                total = self.opt.coarse_iterations if stage == "coarse" else self.opt.iterations
+                first = 1
+                self._begin_stage(stage, total)
+                if resume is not None and resume["stage"] == stage:
+                    first = self._restore(resume) + 1
+                    resume = None
+                self._run_stage(stage, first, total)
         result = TrainResult(
             model_path=self.ctx.model_path, final_iteration=self.ctx.iteration, num_gaussians=self.ctx.model.num_gaussians,
             wall_seconds=time.perf_counter() - start, timings=self.timer.means(),
@@ -211,6 +230,9 @@ class Trainer:
                 self.save_point_cloud()
             if iteration in self.run.checkpoint_iterations:
                 self.save_checkpoint()
+            if self._stop is not None and self._stop.requested:
+                bar.close()
+                self._stop_here()
         bar.close()
         self.hooks.call("on_stage_end", ctx)
 
@@ -257,6 +279,7 @@ class Trainer:
             loss=float(ctx.loss.detach()), num_gaussians=model.num_gaussians,
             psnr=float(torch.stack([psnr(v.image.detach(), v.camera.image) for v in ctx.views]).mean()),
         )
+        self.stall_guard.observe(ctx)
         self.run_log.iteration(ctx, every=self.run.log_every)
 
     def _check_finite_gradients(self) -> None:
@@ -390,10 +413,22 @@ class Trainer:
         return out
 
     # ------------------------------------------------------------------ persistence
+    def _stop_here(self) -> None:
+        """Ctrl-C was pressed: checkpoint this (consistent) iteration and stop."""
+        ctx = self.ctx
+        path = ctx.model_path / f"chkpnt_{ctx.stage}_{ctx.iteration}.pth"
+        if not path.is_file():
+            path = self.save_checkpoint()
+        self.run_log.event("interrupted", stage=ctx.stage, iteration=ctx.iteration, checkpoint=str(path))
+        raise TrainingInterrupted(ctx.stage, ctx.iteration, path)
+
     def save_point_cloud(self) -> Path:
-        path = point_cloud_dir(self.ctx.model_path, self.ctx.iteration, self.ctx.stage)
-        save_point_cloud_dir(self.ctx.model, path)
-        self.hooks.call("on_save", self.ctx, path)
+        """point_cloud/(coarse_)iteration_N, written whole (plugins' on_save files included) then renamed."""
+        ctx = self.ctx
+        path = point_cloud_dir(ctx.model_path, ctx.iteration, ctx.stage)
+        save_point_cloud_dir(ctx.model, path, before_publish=lambda staging: self.hooks.call("on_save", ctx, staging))
+        if self.run_folder is not None:
+            self.run_folder.record_saved(path, ctx.stage, ctx.iteration)
         self.run_log.event("saved", path=str(path))
         return path
 
@@ -405,8 +440,12 @@ class Trainer:
             "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
             "sampler": self.sampler.state_dict(),
             "plugins": self.hooks.state_dict(),
+            "run": {"plugins": list(self.identity().plugins),
+                    "components": {k: list(v) for k, v in self.identity().components.items()}},
         }
         save_training_state(path, ctx.model, ctx.iteration, ctx.stage, extra)
+        if self.run_folder is not None:
+            self.run_folder.record_checkpoint(path, ctx.stage, ctx.iteration)
         self.run_log.event("checkpoint", path=str(path))
         return path
 
@@ -437,6 +476,7 @@ class Trainer:
         path = Path(spec)
         if path.is_dir():
             pc_dir = latest_point_cloud_dir(path)
+            check_upgrade_plugins(path, self.identity())
             try:
                 self.load_model_from(pc_dir)
             except ValueError as err:
@@ -448,6 +488,7 @@ class Trainer:
         state = load_training_state(path)
         if state.stage not in STAGES:
             raise ValueError(f"--start_checkpoint {spec}: cannot tell its stage; name it chkpnt_<coarse|fine>_<N>.pth")
+        check_resume_identity(spec, state.extra, self.identity())
         return {"stage": state.stage, "training_state": state, "path": path}
 
     def _restore(self, resume: dict[str, Any]) -> int:

@@ -14,7 +14,8 @@ up to float32 rounding. Supported: gsplat >= 1.4. Differences between releases h
 - `fully_fused_projection(opacities=...)` exists from 1.5 on; it is passed only where accepted.
 
 gsplat allocates its per-Gaussian outputs without initialising culled entries, so every value of
-an invisible Gaussian is replaced by the same finite stand-in the torch projection uses. gsplat
+an invisible Gaussian is replaced by what the torch projection computes for it (`fill_culled`:
+true off-screen or faded-out projections, finite stand-ins behind the near plane). gsplat
 computes in float32 only; other dtypes are rejected with a ValueError.
 
 This module is imported only when the gsplat backend is selected (see backends.py), so importing
@@ -31,7 +32,7 @@ from types import ModuleType
 import torch
 from torch import Tensor
 
-from .projection import Projection
+from .projection import Projection, project_gaussians_torch
 from .tiles import TILE_SIZE
 
 # rasterize_to_pixels accepts at most this many channels per call (it pads up to 513 itself).
@@ -93,18 +94,35 @@ def project_gaussians_gsplat(
     if opacities is not None and not kwargs:  # gsplat < 1.5 does not cull faint Gaussians itself
         visible = visible & (opacities.detach() >= 1.0 / 255.0)
     radii = radii * visible[:, None]
-
-    # Culled entries are uninitialised memory in gsplat: replace them before any arithmetic.
-    vis2 = visible[:, None]
-    principal = torch.stack([K[0, 2], K[1, 2]]).to(means2d.dtype)
-    means2d = torch.where(vis2, means2d, principal.expand_as(means2d))
-    identity_conic = torch.tensor([1.0, 0.0, 1.0], dtype=conics.dtype, device=conics.device)
-    conics = torch.where(vis2, conics, identity_conic.expand_as(conics))
-    a, b, c = conics.unbind(-1)
-    det = a * c - b * b
-    cov2d = torch.stack([c, -b, -b, a], dim=-1).reshape(-1, 2, 2) / det[:, None, None]
+    means2d, conics, cov2d = fill_culled(means2d, conics, visible, means, quats, scales, viewmat, K, width, height,
+                                         near, far, eps2d)
     depths = (means @ viewmat[2, :3]) + viewmat[2, 3]  # camera-space z, defined for every Gaussian
     return Projection(means2d=means2d, cov2d=cov2d, conics=conics, depths=depths, radii=radii, visible=visible)
+
+
+def fill_culled(means2d: Tensor, conics: Tensor, visible: Tensor, means: Tensor, quats: Tensor, scales: Tensor,
+                viewmat: Tensor, K: Tensor, width: int, height: int, near: float = 0.01, far: float = 1e10,
+                eps2d: float = 0.3) -> tuple[Tensor, Tensor, Tensor]:
+    """(means2d [N, 2], conics [N, 3], cov2d [N, 2, 2]): gsplat's values where `visible`, the torch
+    projection's for every culled Gaussian.
+
+    gsplat leaves culled entries uninitialised. Their true values still matter: a Gaussian off the
+    image or faded out (opacity below 1/255) in view b is where view a's pixels flow to (ReFlow's
+    full flow reads view b's means and covariances of every Gaussian in front of camera b); a
+    placeholder (the principal point) would send them to the image centre. The torch projection
+    computes them (and finite stand-ins behind the near plane), so both backends agree.
+    """
+    culled = (~visible).nonzero()[:, 0]
+    a, b, c = conics.unbind(-1)
+    cov2d = torch.stack([c, -b, -b, a], dim=-1).reshape(-1, 2, 2) / (a * c - b * b)[:, None, None]
+    if culled.numel() == 0:
+        return means2d, conics, cov2d
+    sub = project_gaussians_torch(means[culled], quats[culled], scales[culled], viewmat, K, width, height,
+                                  near=near, far=far, eps2d=eps2d)
+    index = (culled,)
+    return (means2d.index_put(index, sub.means2d.to(means2d.dtype)),
+            conics.index_put(index, sub.conics.to(conics.dtype)),
+            cov2d.index_put(index, sub.cov2d.to(cov2d.dtype)))
 
 
 def composite_gsplat(

@@ -41,8 +41,10 @@ class Projection:
                  pixel with alpha >= 1/255; 0 where not visible.
         visible: [N] bool: in front of the near plane, finite, non-degenerate, box overlaps image.
 
-    Values of invisible Gaussians are finite stand-ins (a Gaussian outside the depth range gets
-    means2d at the principal point and an identity conic); read them only where `visible`.
+    Invisible Gaussians inside the depth range (off the image, or fainter than 1/255) keep their
+    true means2d, cov2d and conics (flow rendering reads them: where view a's pixels go in view b);
+    outside the depth range they are finite stand-ins (means2d at the principal point, an identity
+    conic). Every backend follows this (the gsplat backend fills its culled entries accordingly).
     """
 
     means2d: Tensor

@@ -13,6 +13,7 @@ from .composition import FastObjects, Occlusion, Textureless, ThinStructures
 from .lighting import Light, LightingChange
 from .motion import Attachment, NonRigid, RigidMotion, Visibility
 from .objects import SceneObject
+from .priors import Priors
 from .scenes import get_scene, list_scenes
 from .simulate import SIMULATOR_VERSION, sample_frame, simulate
 from .spec import EFFECTS, SceneSpec
@@ -20,7 +21,7 @@ from .textures import Texture
 
 __all__ = [
     "Attachment", "EFFECTS", "FastObjects", "Forward", "Light", "LightingChange", "NonRigid",
-    "Occlusion", "Orbit", "Pan", "Rig", "RigidMotion", "SIMULATOR_VERSION", "SceneObject",
+    "Occlusion", "Orbit", "Pan", "Priors", "Rig", "RigidMotion", "SIMULATOR_VERSION", "SceneObject",
     "SceneSpec", "Shake", "StaticCamera", "Texture", "Textureless", "ThinStructures",
     "Visibility", "Vrig", "get_scene", "list_scenes", "sample_frame", "simulate",
 ]

@@ -5,8 +5,10 @@ Layout (N frames, stems 000, 001, ...):
     poses_bounds.npy          [N,17] LLFF: c2w 3x4 with columns [down, right, back, t], then
                               [H, W, focal]; then near, far (bounds of that frame's depth)
     images/000.png            RGB uint8
-    disp/000.npy              float32 [H,W] disparity 1 / depth
-    motion_masks/000.png      uint8, 255 = dynamic object
+    disp/000.npy              float32 [H,W] disparity 1 / depth (priors="real": a monocular
+                              network's, see priors.py)
+    motion_masks/000.png      uint8, 255 = dynamic object (left out with priors="real")
+    gt/motion_masks/000.png   the same exact masks, for evaluation (always written)
     gt/depth/000.npy          float32 [H,W] camera z-depth
     gt/flow_fwd/000.npy       float32 [H,W,2] (dx, dy) frame t -> t+1 (t < N-1)
     gt/occ_fwd/000.png        uint8, 255 = occluded at t+1 / leaves the image
@@ -14,7 +16,10 @@ Layout (N frames, stems 000, 001, ...):
     gt/cameras.json           per frame: K, viewmat (world -> camera, OpenCV), time, camera_id, ...
     gt/split.json             test = frames with i % 8 == 0 (llffhold), train = the rest
     gt/vrig/                  second camera (vrig effect): images/, depth/, cameras.json
-    scene.json                the spec, seed, effects, simulator version
+    scene.json                the spec, seed, effects, simulator version, priors, scene scale
+
+`scene_scale` S multiplies every world length written (camera positions, bounds, depths): the
+images and flows stay the same, as in a capture whose reconstruction has other units.
 """
 from __future__ import annotations
 
@@ -27,6 +32,7 @@ from tqdm import tqdm
 
 from .flow import scene_flow
 from .lighting import light_at
+from .priors import Priors
 from .raycast import FrameCamera, Hits, cast, shade
 from .scene import BuiltScene
 from .spec import SceneSpec
@@ -123,8 +129,21 @@ def sample_frame(spec: SceneSpec, frame: int, points: np.ndarray) -> tuple[np.nd
     return shade(hits, dirs, placements, scene.objects, scene.texture_seeds, light), hits.depth
 
 
-def simulate(spec: SceneSpec, out_dir: Union[str, Path], progress: bool = True) -> Path:
+def _scaled(c2w: np.ndarray, scene_scale: float) -> np.ndarray:
+    """A camera-to-world pose with its translation in the written world units."""
+    if scene_scale == 1.0:
+        return c2w
+    out = np.array(c2w, dtype=np.float64)
+    out[:3, 3] *= scene_scale
+    return out
+
+
+def simulate(spec: SceneSpec, out_dir: Union[str, Path], progress: bool = True, priors: Optional[Priors] = None,
+             scene_scale: float = 1.0) -> Path:
     """Render ``spec`` into ``out_dir`` (see the module docstring for the layout); returns it.
+
+    priors: how disparity and masks are written (None: exact; `Priors.real()`: as a real capture).
+    scene_scale: world units of the output (every length x scene_scale; > 0).
 
     The scene is built in a hidden staging directory and renamed into place when complete; an
     existing earlier output (a directory with scene.json) is replaced, any other non-empty
@@ -133,6 +152,10 @@ def simulate(spec: SceneSpec, out_dir: Union[str, Path], progress: bool = True) 
     if not isinstance(spec, SceneSpec):
         raise ValueError(f"simulate() needs a SceneSpec, got {type(spec).__name__}")
     out = Path(out_dir)
+    priors = priors or Priors()
+    if not (isinstance(scene_scale, (int, float)) and np.isfinite(scene_scale) and scene_scale > 0):
+        raise ValueError(f"scene_scale must be a finite number > 0, got {scene_scale!r}")
+    scene_scale = float(scene_scale)
     check_destination(out)
     scene = BuiltScene(spec)  # validates the object graph before any rendering
     cameras = frame_cameras(spec)
@@ -148,13 +171,15 @@ def simulate(spec: SceneSpec, out_dir: Union[str, Path], progress: bool = True) 
         for i in tqdm(range(n), desc=f"simulate {spec.name}", unit="frame", disable=not progress):
             stem, cam = frame_name(i, n), cameras[i]
             rgb, centre = renderer.render(cam, placements[i], f"frame {i}")
-            depth = centre.depth.reshape(cam.height, cam.width)
+            depth = centre.depth.reshape(cam.height, cam.width) * scene_scale
             bounds[i] = depth.min() * _NEAR_FACTOR, depth.max() * _FAR_FACTOR
             write_png(staging / "images" / f"{stem}.png", to_uint8(rgb))
-            write_npy(staging / "disp" / f"{stem}.npy", (1.0 / depth).astype(np.float32))
+            write_npy(staging / "disp" / f"{stem}.npy", priors.disparity(depth, i, spec.seed))
             write_npy(staging / "gt" / "depth" / f"{stem}.npy", depth.astype(np.float32))
-            dynamic = scene.dynamic[centre.index].reshape(cam.height, cam.width)
-            write_png(staging / "motion_masks" / f"{stem}.png", mask_png(dynamic))
+            dynamic = mask_png(scene.dynamic[centre.index].reshape(cam.height, cam.width))
+            write_png(staging / "gt" / "motion_masks" / f"{stem}.png", dynamic)
+            if priors.masks:
+                write_png(staging / "motion_masks" / f"{stem}.png", dynamic)
             for j, kind in ((i + 1, "fwd"), (i - 1, "bwd")):
                 if 0 <= j < n:
                     flow, occluded = scene_flow(centre, cam, cameras[j], placements[j])
@@ -164,8 +189,8 @@ def simulate(spec: SceneSpec, out_dir: Union[str, Path], progress: bool = True) 
                 rgb2, centre2 = renderer.render(second[i], placements[i], f"vrig frame {i}")
                 write_png(staging / "gt" / "vrig" / "images" / f"{stem}.png", to_uint8(rgb2))
                 write_npy(staging / "gt" / "vrig" / "depth" / f"{stem}.npy",
-                          centre2.depth.reshape(cam.height, cam.width).astype(np.float32))
-        _write_metadata(staging, spec, scene, cameras, second, bounds)
+                          (centre2.depth.reshape(cam.height, cam.width) * scene_scale).astype(np.float32))
+        _write_metadata(staging, spec, scene, cameras, second, bounds, priors, scene_scale)
         publish(staging, out)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
@@ -173,27 +198,32 @@ def simulate(spec: SceneSpec, out_dir: Union[str, Path], progress: bool = True) 
     return out
 
 
-def _camera_records(cameras: list[FrameCamera], image_dir: str) -> list[dict]:
+def _camera_records(cameras: list[FrameCamera], image_dir: str, scene_scale: float) -> list[dict]:
     n = len(cameras)
-    return [{"frame": i, "image": f"{image_dir}/{frame_name(i, n)}.png", "time": cam.time,
-             "camera_id": cam.camera_id, "width": cam.width, "height": cam.height,
-             "K": cam.K.tolist(), "viewmat": cam.viewmat.tolist()}
-            for i, cam in enumerate(cameras)]
+    records = []
+    for i, cam in enumerate(cameras):
+        viewmat = np.array(cam.viewmat, dtype=np.float64)
+        viewmat[:3, 3] *= scene_scale
+        records.append({"frame": i, "image": f"{image_dir}/{frame_name(i, n)}.png", "time": cam.time,
+                        "camera_id": cam.camera_id, "width": cam.width, "height": cam.height,
+                        "K": cam.K.tolist(), "viewmat": viewmat.tolist()})
+    return records
 
 
 def _write_metadata(root: Path, spec: SceneSpec, scene: BuiltScene, cameras: list[FrameCamera],
-                    second: Optional[list[FrameCamera]], bounds: np.ndarray) -> None:
+                    second: Optional[list[FrameCamera]], bounds: np.ndarray, priors: Priors,
+                    scene_scale: float) -> None:
     n = spec.frames
     rows = []
     for cam, (near, far) in zip(cameras, bounds):
         hwf = np.array([[cam.height], [cam.width], [cam.K[0, 0]]], dtype=np.float64)
-        rows.append(np.concatenate([np.concatenate([c2w_to_llff(cam.c2w), hwf], axis=1).ravel(),
+        rows.append(np.concatenate([np.concatenate([c2w_to_llff(_scaled(cam.c2w, scene_scale)), hwf], axis=1).ravel(),
                                     [near, far]]))
     write_npy(root / "poses_bounds.npy", np.stack(rows))
     convention = ("viewmat: world-to-camera 4x4, OpenCV axes (x right, y down, z forward); "
                   "K in pixels, pixel (i, j) centred at (j + 0.5, i + 0.5)")
     write_json(root / "gt" / "cameras.json",
-               {"convention": convention, "frames": _camera_records(cameras, "images")})
+               {"convention": convention, "frames": _camera_records(cameras, "images", scene_scale)})
     test = [i for i in range(n) if i % LLFF_HOLD == 0]
     write_json(root / "gt" / "split.json",
                {"protocol": f"llffhold={LLFF_HOLD}: frame i is a test view iff i % {LLFF_HOLD} == 0",
@@ -203,9 +233,19 @@ def _write_metadata(root: Path, spec: SceneSpec, scene: BuiltScene, cameras: lis
                    {"convention": convention,
                     "protocol": "vrig: train on the main camera, test on this second camera at "
                                 "the same timestamps",
-                    "frames": _camera_records(second, "gt/vrig/images")})
+                    "frames": _camera_records(second, "gt/vrig/images", scene_scale)})
     write_json(root / "scene.json", {
         "simulator_version": SIMULATOR_VERSION, "name": spec.name, "seed": spec.seed,
         "frames": n, "width": spec.width, "height": spec.height,
         "effects": list(spec.effect_names), "dynamic_objects": scene.dynamic_names,
-        "spec": spec.to_dict()})
+        "spec": spec.to_dict(), **_output_options(priors, scene_scale)})
+
+
+def _output_options(priors: Priors, scene_scale: float) -> dict:
+    """scene.json entries of the output options (absent at their defaults: exact, scale 1)."""
+    out = {}
+    if not priors.exact or not priors.masks:
+        out["priors"] = priors.to_dict()
+    if scene_scale != 1.0:
+        out["scene_scale"] = scene_scale
+    return out

@@ -51,12 +51,27 @@ BLOCK_ROUNDS = 5
 
 @dataclass
 class FrameState:
-    """Aligned frame: depth = scale * D + shift; viewmat [4, 4] world -> camera."""
+    """Aligned frame: depth = scale * D + shift, or with `inverse` 1 / depth = scale * d + shift on
+    the provider's inverse depth d (canonical/inverse.py); viewmat [4, 4] world -> camera."""
 
     scale: float
     shift: float
     viewmat: np.ndarray
     determined: bool = True  # False: the scale is a fallback (no camera baseline, no edge)
+    inverse: bool = False
+    max_depth: float = float("inf")  # inverse states: farther pixels carry no depth
+
+    def metric_depth(self, provider: PointmapProvider, n: int, full: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(metric z-depth [h, w], provider confidence [h, w]) of frame n; NaN where not positive
+        (or, inverse, beyond max_depth)."""
+        if not self.inverse:
+            depth, conf = provider.depth(n, full)
+            return self.scale * np.asarray(depth, np.float64) + self.shift, conf
+        d, conf = provider.inverse_depth(n, full)
+        u = self.scale * np.asarray(d, np.float64) + self.shift
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(u > 0, 1.0 / u, np.nan)
+        return np.where(z <= self.max_depth, z, np.nan), conf
 
 
 @dataclass
@@ -362,9 +377,9 @@ def _refine(data: dict[int, _Frame], pairs: dict[tuple[int, int], PairPrediction
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, max(iterations, 1), eta_min=lr * 0.01)
     with torch.no_grad():
         initial = float(loss_fn())
-    # off a terminal (log files, CI) a redraw every 30 s instead of a carriage-return flood
-    bar = tqdm(range(iterations), desc=desc, disable=not progress, leave=False,
-               mininterval=0.1 if sys.stderr.isatty() else 30.0)
+    # the training bar's rule: a bar on a terminal only; in a log file (CI, clusters) its carriage
+    # returns (set_postfix redraws every step, whatever mininterval says) would flood the log
+    bar = tqdm(range(iterations), desc=desc, disable=not progress or not sys.stderr.isatty(), leave=False)
     for _ in bar:
         optimizer.zero_grad()
         loss = loss_fn()

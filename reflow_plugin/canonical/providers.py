@@ -8,9 +8,10 @@ Every array lives on the provider's pixel grid (every `stride` pixels, geometry.
 asks for full resolution (used for the reference frame's dynamic points).
 
 Providers:
-    depth  the dataset's disparity (`disp/*.npy`, loaded as Camera.disparity): depth = 1 / disparity.
-           Real captures ship monocular disparity of unknown per-frame scale and shift; the
-           alignment's per-frame scale/shift absorbs it. `depth_source="gt"` reads the
+    depth  the dataset's disparity (`disp/*.npy`, loaded as Camera.disparity): depth = 1 / disparity,
+           `inverse_depth` the disparity itself. Real captures ship monocular disparity of unknown
+           per-frame scale and shift IN INVERSE DEPTH; canonical/inverse.py fits and aligns it
+           there (the DUSt3R-style alignment's depth scale/shift cannot represent it). `depth_source="gt"` reads the
            simulator's `gt/depth/*.npy` instead, with controlled errors for tests: per-frame scale
            drift exp(drift * N(0, 1)), multiplicative noise (1 + noise * N(0, 1)) per pixel, a
            fraction `outliers` of pixels scaled by U(0.5, 2). A pair (i, j) is built like a
@@ -96,6 +97,14 @@ class PointmapProvider(ABC):
     def pair(self, i: int, j: int) -> PairPrediction:
         """Pointmaps of frames i and j in camera i's frame."""
 
+    def inverse_depth(self, n: int, full: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(inverse depth [h, w] of frame n up to the provider's affine map, confidence [h, w]);
+        NaN where the depth is not positive. Monocular disparity is affine in this quantity."""
+        depth, conf = self.depth(n, full)
+        depth = np.asarray(depth, np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(depth > 0, 1.0 / depth, np.nan), conf
+
     def key(self) -> str:
         """Everything the provider's output depends on besides the cameras (for the cache)."""
         return f"{self.name}|stride={self.stride}"
@@ -162,6 +171,15 @@ class DepthProvider(PointmapProvider):
     def depth(self, n: int, full: bool = False) -> tuple[np.ndarray, np.ndarray]:
         d = self.scales[n] * self._sampled(n, full, int(full))
         return d, (np.isfinite(d) & (d > 0)).astype(np.float64)
+
+    def inverse_depth(self, n: int, full: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """The dataset's disparity as stored (any sign: its affine map decides where depth is
+        positive), or 1 / depth of the gt source with its errors."""
+        if self.source == "gt":
+            return super().inverse_depth(n, full)
+        rows, cols = self.grid(full)
+        d = self.cameras[n].disparity.detach().cpu().double().numpy()[np.ix_(rows, cols)] / self.scales[n]
+        return d, np.isfinite(d).astype(np.float64)
 
     def pair(self, i: int, j: int) -> PairPrediction:
         rows, cols = self.grid()

@@ -1,4 +1,13 @@
-"""`build_canonical_space`: provider -> coarse-to-fine alignment -> static/dynamic clouds, cached.
+"""`build_canonical_space`: provider -> alignment -> static/dynamic clouds, cached.
+
+Alignment, by provider:
+- depth provider (monocular disparity), cameras fixed, with metric evidence (`anchors`: the
+  host's sparse points, and/or the dataset's near/far bounds): scale comes first. Each frame's
+  affine map in inverse depth is fitted to that evidence (reflow_plugin.disparity), then refined
+  jointly (inverse.py). `refine=False` stops after the per-frame fits.
+- otherwise (flow provider, free poses, no evidence): the DUSt3R-style coarse-to-fine alignment
+  (coarse_to_fine.py, alignment.py).
+`align=False` is the paper's "w/o align": raw per-frame pointmaps with the dataset's cameras.
 
 Options come from ReFlowParams' `canonical_*` fields (options_from_params) or are given directly
 (tests and benchmarks reach the simulator-only settings: depth_source="gt", noise, drift,
@@ -6,6 +15,7 @@ outliers, free_poses, mode="full").
 """
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 import time
@@ -19,8 +29,10 @@ from plyfile import PlyData, PlyElement
 from baselines.data import Camera, PointCloud
 from baselines.fourdgs.checkpoint import atomic_write_ply
 
+from ..disparity import fit_frames, sparse_pairs, summary
 from . import cache
 from .coarse_to_fine import align_sequence, unaligned
+from .inverse import align_inverse
 from .providers import DepthProvider, FlowProvider, PointmapProvider
 from .split import dynamic_cloud, static_cloud
 
@@ -38,12 +50,15 @@ class CanonicalOptions:
     clip_len: int = 25
     window: int = 4  # pairs at most this many frames apart inside a clip
     voxel: float = 0.01  # static voxel side as a fraction of the median depth (0 = keep every point)
+    max_points: int = 20_000  # static points at most: the voxel grows until the cloud fits (0 = no limit)
     iterations: int = 300
     cache: bool = True
     mode: str = "coarse_to_fine"  # or "full" (every pair in one graph; O(N^2))
     free_poses: bool = False  # optimise camera poses too (the dataset's only anchor the gauge)
     max_side: int = 64  # alignment grid: every stride-th pixel, stride = ceil(longest side / max_side)
     shift: bool = False  # optimise a per-frame depth shift besides the scale (alignment.align_frames)
+    refine: bool = True  # inverse-depth path: joint refinement after the per-frame fits (inverse.py)
+    inverse_iterations: int = 50  # Adam steps of that refinement
     mask_dynamic: bool = True  # pixels in the motion masks carry no weight in the alignment
     dynamic_points: int = 20_000
     depth_source: str = "disparity"  # depth provider: disparity (dataset) | gt (simulator gt/depth)
@@ -83,7 +98,8 @@ def _write_cloud(cloud: PointCloud, path: Path, label: int) -> Path:
 def options_from_params(p: Any) -> CanonicalOptions:
     """CanonicalOptions from ReFlowParams (its canonical_* fields)."""
     return CanonicalOptions(provider=p.canonical_provider, align=p.canonical_align, clip_len=p.canonical_clip_len,
-                            window=p.canonical_window, voxel=p.canonical_voxel, iterations=p.canonical_iters,
+                            window=p.canonical_window, voxel=p.canonical_voxel, max_points=p.canonical_max_points,
+                            iterations=p.canonical_iters,
                             cache=p.canonical_cache, shift=p.canonical_shift,
                             dynamic_points=p.seed_points)
 
@@ -118,12 +134,59 @@ def _check_masks(cameras: Sequence[Camera], masks: Sequence[np.ndarray] | None) 
     return out
 
 
+def _anchored(provider: PointmapProvider, cameras: Sequence[Camera], anchors: np.ndarray | None,
+              options: CanonicalOptions) -> bool:
+    """Whether the inverse-depth path applies: depth provider, fixed cameras, metric evidence (sparse
+    points; for the dataset's disparity the near/far bounds are enough)."""
+    if not (options.align and not options.free_poses and options.mode == "coarse_to_fine"
+            and isinstance(provider, DepthProvider)):
+        return False
+    bounds = provider.source == "disparity" and all(c.extras.get("near_far") is not None for c in cameras)
+    return (anchors is not None and len(anchors) > 0) or bounds
+
+
+def _align_inverse(provider: DepthProvider, cameras: Sequence[Camera], frames: list[int], weights: dict,
+                   masks: Sequence[np.ndarray] | None, anchors: np.ndarray | None, options: CanonicalOptions,
+                   progress: bool) -> tuple[dict, dict] | None:
+    """Per-frame fits to the metric evidence, then (options.refine) the joint refinement; None when
+    some frame has no fit at all (the caller falls back to the DUSt3R-style path)."""
+    start = time.perf_counter()
+    inverse = [provider.inverse_depth(n, full=True)[0] for n in range(len(cameras))]
+    fits = fit_frames(cameras, inverse, anchors, masks)
+    if not all(f.usable for f in fits):
+        log.warning("canonical: %d frame(s) without any metric evidence (no sparse point, no bounds); "
+                    "using the pairwise alignment instead", sum(not f.usable for f in fits))
+        return None
+    points = np.zeros((0, 3)) if anchors is None else anchors
+    pairs = {n: sparse_pairs(cameras[n], inverse[n], points, None if masks is None else masks[n]) for n in frames}
+    fit_report = dict(summary(fits), frames={cameras[n].image_name: fits[n].as_dict() for n in frames})
+    if options.refine:
+        states, report = align_inverse(provider, frames, weights, {n: fits[n] for n in frames}, pairs,
+                                       options.window, options.inverse_iterations, progress=progress,
+                                       device=options.device, seed=options.seed)
+    else:
+        states, report = align_inverse(provider, frames, weights, {n: fits[n] for n in frames}, pairs,
+                                       options.window, 0, device=options.device, seed=options.seed)
+        report["mode"] = "inverse depth (per-frame fits only)"
+    report["fits"] = fit_report
+    report["seconds"] = time.perf_counter() - start
+    return states, report
+
+
+def _points_key(points: np.ndarray | None) -> str | None:
+    if points is None:
+        return None
+    return hashlib.sha256(np.ascontiguousarray(np.asarray(points, np.float32)).tobytes()).hexdigest()[:16]
+
+
 def build_canonical_space(scene: Any, masks: Sequence[np.ndarray] | None, options: CanonicalOptions | None = None,
-                          cache_dir: Path | None = None, progress: bool = False) -> CanonicalSpace:
+                          cache_dir: Path | None = None, progress: bool = False,
+                          anchors: np.ndarray | None = None) -> CanonicalSpace:
     """The canonical space of `scene` (a SceneInfo or anything with train_cameras and source_path).
 
     masks: per training camera [H, W] bool (True = dynamic), or None (everything static).
     cache_dir: where the cache lives (None or options.cache False: no cache).
+    anchors: [P, 3] metric static points (the host's triangulated / dataset cloud), or None.
     """
     start = time.perf_counter()
     options = options or CanonicalOptions()
@@ -131,6 +194,7 @@ def build_canonical_space(scene: Any, masks: Sequence[np.ndarray] | None, option
     masks = _check_masks(cameras, masks)
     provider = make_provider(cameras, getattr(scene, "source_path", None), options)
     settings = {k: v for k, v in asdict(options).items() if k not in ("cache", "device")}
+    settings["anchors"] = _points_key(anchors)
     key = cache.cache_key(cameras, masks, provider.key(), settings)
     folder = Path(cache_dir) if cache_dir is not None and options.cache else None
     hit = cache.load(folder, key)
@@ -144,14 +208,18 @@ def build_canonical_space(scene: Any, masks: Sequence[np.ndarray] | None, option
     rows, cols = provider.grid()
     weights = {n: (np.ones((len(rows), len(cols))) if masks is None or not options.mask_dynamic
                    else (~masks[n][np.ix_(rows, cols)]).astype(np.float64)) for n in frames}
-    if options.align:
+    inverse = (_align_inverse(provider, cameras, frames, weights, masks, anchors, options, progress)
+               if _anchored(provider, cameras, anchors, options) else None)
+    if inverse is not None:
+        states, alignment = inverse
+    elif options.align:
         states, alignment = align_sequence(provider, frames, weights, options.mode, options.clip_len, options.window,
                                            options.free_poses, options.iterations, progress, options.device,
                                            options.shift)
     else:
         states, alignment = unaligned(provider, frames)
     split_start = time.perf_counter()
-    static = static_cloud(provider, states, masks, options.voxel)
+    static = static_cloud(provider, states, masks, options.voxel, options.max_points)
     dynamic, reference = dynamic_cloud(provider, states, masks, options.dynamic_points, options.seed)
     report = {"provider": provider.key(), "frames": len(frames), "grid": [len(rows), len(cols)],
               "align": options.align, "alignment": alignment, "static_points": len(static),

@@ -4,8 +4,9 @@
     dynamic, k = dynamic_cloud(provider, states, masks, max_points)   # reference frame k's masked pixels
 
 Static: every frame's grid pixels outside its motion mask, with positive confidence and depth,
-back-projected with the aligned depth (scale * D + shift) and camera, then voxel-downsampled
-(mean position and colour per voxel of side `voxel` x the median depth; 0 = no downsampling).
+back-projected with the aligned depth (FrameState.metric_depth) and camera, then voxel-downsampled
+(mean position and colour per voxel of side `voxel` x the median depth; 0 = no downsampling),
+the voxel grown until at most `max_points` remain (monocular depth noise thickens the surfaces).
 Dynamic: the reference frame (largest mask coverage x colour diversity, seeding.reference_frame)
 back-projected at full resolution inside its mask. Without masks every point is static.
 """
@@ -33,8 +34,7 @@ def aligned_depth(provider: PointmapProvider, n: int, state: FrameState, full: b
                   min_confidence: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(metric depth [h, w] with NaN where unusable, valid [h, w] bool) of frame n: confidence above
     `min_confidence`, finite positive depth."""
-    depth, conf = provider.depth(n, full)
-    z = state.scale * np.asarray(depth, np.float64) + state.shift
+    z, conf = state.metric_depth(provider, n, full)
     valid = np.isfinite(z) & (z > 0) & (np.nan_to_num(np.asarray(conf, np.float64)) > min_confidence)
     return np.where(valid, z, np.nan), valid
 
@@ -51,8 +51,9 @@ def voxel_downsample(points: np.ndarray, colours: np.ndarray, voxel: float) -> t
 
 
 def static_cloud(provider: PointmapProvider, states: Mapping[int, FrameState],
-                 masks: Sequence[np.ndarray] | None, voxel: float) -> PointCloud:
-    """Fused static points of every frame in `states` (see the module docstring)."""
+                 masks: Sequence[np.ndarray] | None, voxel: float, max_points: int = 0) -> PointCloud:
+    """Fused static points of every frame in `states` (see the module docstring); with `max_points`
+    the voxel grows by x1.25 steps until at most that many remain."""
     rows, cols = provider.grid()
     points, colours = [], []
     for n, state in sorted(states.items()):
@@ -67,8 +68,12 @@ def static_cloud(provider: PointmapProvider, states: Mapping[int, FrameState],
     P, C = np.concatenate(points), np.concatenate(colours).astype(np.float64)
     if voxel > 0:
         depths = np.concatenate([aligned_depth(provider, n, s)[0].reshape(-1) for n, s in sorted(states.items())])
-        scale = float(np.nanmedian(depths))
-        P, C = voxel_downsample(P, C, voxel * scale)
+        side = voxel * float(np.nanmedian(depths))
+        fused = voxel_downsample(P, C, side)
+        while max_points > 0 and len(fused[0]) > max_points:
+            side *= 1.25
+            fused = voxel_downsample(P, C, side)
+        P, C = fused
     return PointCloud(P, np.clip(C, 0, 1))
 
 

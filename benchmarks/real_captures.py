@@ -1,0 +1,174 @@
+"""Real captures for `benchmarks/real_suite.py`: where each one comes from, how to set it up locally.
+
+    python benchmarks/real_suite.py --fetch-instructions            # what to clone, and the setup command
+    python benchmarks/real_suite.py --setup NAME --clone CLONE      # extract (and prepare) one capture
+
+Every capture is a folder committed to a public GitHub repository, pinned to one commit. The
+data is never copied into this repository: `setup` reads it with `git archive COMMIT FOLDER` from
+a local clone (a plain or a bare clone) and writes `DATA/<name>` (default `data/real/`, git-ignored):
+
+- family `nvidia`: NVIDIA Dynamic Scenes frames in the DynamicNeRF layout; the entries in `keep`
+  (`images/`, `disp/`, `poses_bounds.npy`) are copied as they are, nothing else;
+- family `clip`: a folder of video frames (DAVIS-style JPGs) with no cameras; the frames go to
+  `DATA/src/<name>` and `python -m baselines.prepare` (pycolmap SfM, auto motion masks) writes
+  the COLMAP-layout dataset `DATA/<name>` with `prepare_flags`.
+
+Held-out protocol (`--eval`, every `llffhold`-th frame, 0, 8, 16, ...) is the family's: NVIDIA's
+monocular protocol holds out every 8th frame; prepared clips use the same LLFF rule on the
+registered frames.
+"""
+from __future__ import annotations
+
+import io
+import shutil
+import subprocess
+import sys
+import tarfile
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_DATA = ROOT / "data" / "real"
+FAMILIES = ("nvidia", "clip")
+
+
+class CaptureError(ValueError):
+    """A capture is unknown, missing, or cannot be set up; the message says what to do."""
+
+
+@dataclass(frozen=True)
+class Capture:
+    name: str
+    family: str                    # nvidia | clip
+    repo: str                      # GitHub owner/name
+    commit: str                    # 40-hex commit the data is read from
+    folder: str                    # folder inside the repository
+    what: str                      # one line for the README table
+    resolution: int = 1            # train.py -r (downscale factor of the stored images)
+    keep: tuple[str, ...] = ()     # nvidia: entries of `folder` copied into the dataset
+    prepare_flags: tuple[str, ...] = ()  # clip: options of `python -m baselines.prepare`
+
+    @property
+    def url(self) -> str:
+        return f"https://github.com/{self.repo}"
+
+
+CAPTURES: dict[str, Capture] = {c.name: c for c in (
+    Capture(name="nvidia_balloon1", family="nvidia", repo="xyi1023/ShanghaiTech-CS172-Final-Project",
+            commit="60c41bd1a306341bddac115cbc31c8243ea92618", folder="Balloon1",
+            what="NVIDIA Dynamic Scenes Balloon1, 12 frames 960x540, disp/ from a monocular network, no motion masks",
+            resolution=4, keep=("images", "disp", "poses_bounds.npy")),
+    Capture(name="davis_lady_running", family="clip", repo="Junyi42/monst3r",
+            commit="574cc77ad278bad582f470e5382624e01f8769a7", folder="demo_data/lady-running",
+            what="DAVIS lady-running, 65 JPG frames 854x480, hand-held camera following a runner",
+            prepare_flags=("--size", "320")),
+    Capture(name="nvidia_balloon1_colmap", family="clip", repo="xyi1023/ShanghaiTech-CS172-Final-Project",
+            commit="60c41bd1a306341bddac115cbc31c8243ea92618", folder="Balloon1/images",
+            what="the same 12 Balloon1 frames without poses or disparity, through prepare (COLMAP cameras, flow path)",
+            prepare_flags=("--size", "240")),
+)}
+
+
+def dataset_dir(capture: Capture, data_root: Path) -> Path:
+    return Path(data_root) / capture.name
+
+
+def frames_dir(capture: Capture, data_root: Path) -> Path:
+    return Path(data_root) / "src" / capture.name
+
+
+def is_ready(capture: Capture, data_root: Path) -> bool:
+    """True when `DATA/<name>` holds a dataset train.py can read for this family."""
+    folder = dataset_dir(capture, data_root)
+    if capture.family == "nvidia":
+        return (folder / "poses_bounds.npy").is_file() and (folder / "images").is_dir()
+    return (folder / "images").is_dir() and (folder / "sparse" / "0").is_dir() and (folder / "prepare_report.json").is_file()
+
+
+def fetch_instructions(capture: Capture, data_root: Path, clone_root: str = "/tmp/clones") -> str:
+    """Shell lines that fetch `capture` from its repository and set it up under `data_root`."""
+    clone = f"{clone_root}/{capture.repo.replace('/', '+')}"
+    return "\n".join([
+        f"# {capture.name}: {capture.what}",
+        f"#   {capture.url}/tree/{capture.commit}/{capture.folder}",
+        f"git clone {capture.url} {clone}",
+        f"python benchmarks/real_suite.py --setup {capture.name} --clone {clone} --data {data_root}",
+    ])
+
+
+def require_ready(captures: list[Capture], data_root: Path) -> None:
+    """One CaptureError naming every missing capture and how to fetch it (before any training)."""
+    missing = [c for c in captures if not is_ready(c, data_root)]
+    if not missing:
+        return
+    names = ", ".join(f"{c.name} ({dataset_dir(c, data_root)})" for c in missing)
+    how = "\n".join(fetch_instructions(c, data_root) for c in missing)
+    raise CaptureError(f"capture(s) not found: {names}; fetch them with:\n{how}\n"
+                       "(or run only the captures you have with --captures NAME,...)")
+
+
+def select(names: str | None) -> list[Capture]:
+    """The registry entries named in a comma list (all when None); CaptureError for an unknown name."""
+    if not names:
+        return list(CAPTURES.values())
+    chosen = [n.strip() for n in names.split(",") if n.strip()]
+    unknown = [n for n in chosen if n not in CAPTURES]
+    if unknown:
+        raise CaptureError(f"unknown capture(s) {unknown}; known: {', '.join(CAPTURES)}")
+    return [CAPTURES[n] for n in chosen]
+
+
+def _archive(clone: Path, commit: str, paths: list[str]) -> tarfile.TarFile:
+    """The tar of `paths` at `commit` in the clone (plain or bare); CaptureError if git cannot give it."""
+    if not Path(clone).exists():
+        raise CaptureError(f"--clone {clone} does not exist")
+    result = subprocess.run(["git", "-C", str(clone), "archive", "--format=tar", commit, "--", *paths],
+                            capture_output=True)
+    if result.returncode != 0:
+        reason = result.stderr.decode(errors="replace").strip().splitlines()
+        raise CaptureError(f"git archive {commit} {' '.join(paths)} failed in {clone}: "
+                           f"{reason[-1] if reason else 'unknown'} (is it a clone of the capture's repository, with that commit?)")
+    return tarfile.open(fileobj=io.BytesIO(result.stdout))
+
+
+def extract(clone: Path, commit: str, folder: str, target: Path, keep: tuple[str, ...] = ()) -> int:
+    """Write the files of `folder` (only the top-level entries in `keep`, when given) into `target`.
+
+    Returns the number of files written; CaptureError when `keep` names something absent."""
+    prefix = folder.rstrip("/") + "/"
+    written, seen = 0, set()
+    paths = [prefix + k for k in keep] if keep else [folder]
+    with _archive(clone, commit, paths) as tar:
+        for member in tar.getmembers():
+            if not member.isfile() or not member.name.startswith(prefix):
+                continue
+            relative = member.name[len(prefix):]
+            top = relative.split("/", 1)[0]
+            if keep and top not in keep:
+                continue
+            seen.add(top)
+            destination = Path(target) / relative
+            destination.parent.mkdir(parents=True, exist_ok=True)
+            with tar.extractfile(member) as source, open(destination, "wb") as out:
+                shutil.copyfileobj(source, out)
+            written += 1
+    absent = [k for k in keep if k not in seen]
+    if absent or written == 0:
+        raise CaptureError(f"{folder} at {commit[:12]} lacks {absent or 'any file'} "
+                           "(a snapshot without its large files? clone the full repository)")
+    return written
+
+
+def setup(capture: Capture, clone: Path, data_root: Path) -> Path:
+    """Extract (and for clips, prepare) `capture` under `data_root`; returns the dataset folder."""
+    target = dataset_dir(capture, data_root)
+    if capture.family == "nvidia":
+        count = extract(clone, capture.commit, capture.folder, target, capture.keep)
+        print(f"{capture.name}: {count} files -> {target}")
+        return target
+    frames = frames_dir(capture, data_root)
+    count = extract(clone, capture.commit, capture.folder, frames)
+    print(f"{capture.name}: {count} frames -> {frames}; running prepare")
+    subprocess.run([sys.executable, "-m", "baselines.prepare", str(frames), "-o", str(target), "--quiet",
+                    *capture.prepare_flags], cwd=ROOT, check=True)
+    return target

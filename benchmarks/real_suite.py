@@ -1,0 +1,375 @@
+"""Baseline vs ReFlow on real captures: held-out PSNR/SSIM, PSNR inside the (estimated) motion masks.
+
+    python benchmarks/real_suite.py [--captures nvidia_balloon1,nvidia_balloon1_colmap,davis_lady_running]
+                                    [--methods baseline,reflow] [--data data/real] [--out output/real] [--jobs 1]
+                                    [--coarse_iterations 300] [--iterations 2000] [--seed 0]
+                                    [--images docs/images] [-- extra train.py flags]
+    python benchmarks/real_suite.py --fetch-instructions      # where each capture comes from
+    python benchmarks/real_suite.py --setup NAME --clone DIR  # extract (and prepare) one capture
+
+The captures and their sources (repository + commit) are the registry in
+`benchmarks/real_captures.py`; a capture missing under `--data` stops the command before any
+training with one error that prints how to fetch it. Each (capture, method) is an ordinary
+`train.py` run in `OUT/<capture>/<method>` with the family's default config (no `--configs`:
+`arguments/nvidia/*` for NVIDIA, `arguments/hypernerf/*` for prepared clips), `--eval` (every 8th
+frame held out), the same schedule and `--seed` for both methods; ReFlow runs with its defaults
+(`--plugin reflow`); `--methods ...,reflow_flow_provider` adds a diagnosis row, ReFlow with its
+canonical space built from triangulated optical flow instead of the dataset's `disp/`. A run is done when `real_done.json` exists (written after train.py
+succeeded, with the command and the code's commit); a folder without it is a torn run and is
+redone, and a folder trained with another command stops the suite (use a fresh `--out` after
+changing the schedule or the code you want to measure).
+
+In-mask metrics: the dataset's `motion_masks/` when it has them (prepare's auto masks), else
+masks estimated once per capture over ALL frames from DIS flow and the known cameras
+(`baselines.data.motion_masks`, epipolar test, cached in `OUT/<capture>/eval_masks/`); the same
+masks score both methods. PSNR-mask / PSNR-outside are computed from the saved 8-bit test
+renders and ground truth (`test/ours_<N>/{renders,gt}`); PSNR and SSIM are train.py's
+(`results.json`). Side-by-side images (ground truth | baseline | ReFlow, the two held-out views
+with the most masked pixels) go to `IMAGES/real_<capture>.jpg`. Prints one Markdown table and
+writes it with the raw figures to `OUT/real_suite.md` / `OUT/real_suite.json`.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.real_captures import (DEFAULT_DATA, Capture, CaptureError, dataset_dir,  # noqa: E402
+                                      fetch_instructions, require_ready, select, setup)
+
+METHODS = {
+    "baseline": [],
+    "reflow": ["--plugin", "reflow"],
+    # diagnosis (not run by default): the canonical space from triangulated optical flow instead of disp/
+    "reflow_flow_provider": ["--plugin", "reflow", "--canonical_provider", "flow"],
+}
+DEFAULT_METHODS = ("baseline", "reflow")
+DONE_FILE = "real_done.json"
+COLUMNS = ("PSNR", "SSIM", "PSNR-mask", "PSNR-outside", "mask %", "train_s", "code")
+NEAR_PLANE = 0.01  # the rasterizer's default near plane (baselines/render/api.py)
+
+
+class SuiteError(RuntimeError):
+    """A run folder cannot be reused as it is."""
+
+
+TRAINING_CODE = (".", ":!benchmarks", ":!tests", ":!docs", ":!README.md")  # what a run's figures depend on
+
+
+def code_version() -> str:
+    """Short hash of the last commit that changed the training code (everything but benchmarks/,
+    tests/, docs/ and the README), with '+dirty' when that code differs from it."""
+    head = subprocess.run(["git", "-C", str(ROOT), "log", "-1", "--format=%h", "--abbrev=10", "--", *TRAINING_CODE],
+                          capture_output=True, text=True)
+    if head.returncode != 0 or not head.stdout.strip():
+        return "unknown"
+    dirty = subprocess.run(["git", "-C", str(ROOT), "diff", "--quiet", "HEAD", "--", *TRAINING_CODE], capture_output=True)
+    return head.stdout.strip() + ("+dirty" if dirty.returncode else "")
+
+
+def train_command(capture: Capture, method: str, source: Path, run: Path, schedule: dict, extra: list[str]) -> list[str]:
+    """The train.py argument list of one (capture, method): same schedule and seed for every method."""
+    return ["train.py", "-s", str(source), "-m", str(run), "-r", str(capture.resolution), "--eval",
+            "--coarse_iterations", str(schedule["coarse_iterations"]), "--iterations", str(schedule["iterations"]),
+            "--seed", str(schedule["seed"]), "--quiet", *METHODS[method], *extra]
+
+
+def run_one(capture: Capture, method: str, data_root: Path, out: Path, schedule: dict, extra: list[str],
+            threads: int) -> Path:
+    """Train one (capture, method) unless its run folder is done; returns the run folder."""
+    run = out / capture.name / method
+    command = train_command(capture, method, dataset_dir(capture, data_root), run, schedule, extra)
+    done = run / DONE_FILE
+    if done.is_file():
+        stored = json.loads(done.read_text())
+        if stored.get("command") != command:
+            raise SuiteError(f"{run} was trained with another command ({' '.join(stored.get('command', []))}); "
+                             "use a fresh --out or delete that folder")
+        return run
+    lock = run.parent / f"{method}.lock"
+    owner = _live_owner(lock)
+    if owner is not None:
+        raise SuiteError(f"{run} is being trained by process {owner} (another real_suite.py); wait for it")
+    if run.exists():  # torn: a killed or failed earlier attempt
+        shutil.rmtree(run)
+    run.mkdir(parents=True)
+    lock.write_text(str(os.getpid()))
+    code = code_version()  # the code that trains, before anyone edits the checkout
+    env = dict(os.environ, OMP_NUM_THREADS=str(threads))
+    with open(run.parent / f"{method}_train.log", "w") as log:
+        result = subprocess.run([sys.executable, *command], cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
+    lock.unlink(missing_ok=True)
+    if result.returncode != 0:
+        tail = (run.parent / f"{method}_train.log").read_text().strip().splitlines()[-3:]
+        raise SuiteError(f"{capture.name}/{method}: train.py exited {result.returncode}: " + " | ".join(tail))
+    tmp = run / (DONE_FILE + ".tmp")
+    tmp.write_text(json.dumps({"command": command, "code": code}, indent=1))
+    tmp.replace(done)
+    return run
+
+
+def _live_owner(lock: Path) -> int | None:
+    """The pid recorded in `lock` when that process still runs, else None (a stale lock)."""
+    try:
+        pid = int(lock.read_text().strip())
+        os.kill(pid, 0)
+    except (OSError, ValueError):
+        return None
+    return pid
+
+
+def latest_test_dir(run: Path) -> Path:
+    dirs = sorted((run / "test").glob("ours_*"), key=lambda p: int(p.name.split("_")[1]))
+    if not dirs:
+        raise SuiteError(f"no test renders under {run / 'test'}")
+    return dirs[-1]
+
+
+def load_capture(capture: Capture, data_root: Path):
+    """The capture's SceneInfo at the benchmark's resolution, with the family's hold-out."""
+    from baselines.data.loader import load_scene
+
+    return load_scene(dataset_dir(capture, data_root), resolution=capture.resolution, eval=True)
+
+
+def eval_masks(capture: Capture, scene, out: Path) -> list[np.ndarray]:
+    """[H, W] bool motion mask per held-out view (test order), dataset masks or estimated (cached)."""
+    from baselines.data.motion_masks import estimate_motion_masks
+
+    folder = out / capture.name / "eval_masks"
+    tests = scene.test_cameras
+    if all(c.mask is not None for c in tests):
+        return [c.mask.cpu().numpy() > 0.5 for c in tests]
+    paths = [folder / f"{c.image_name}.png" for c in tests]
+    cached = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) if p.is_file() else None for p in paths]
+    if all(m is not None and m.shape == (c.height, c.width) for m, c in zip(cached, tests)):
+        return [m > 127 for m in cached]
+    frames = sorted(scene.train_cameras + tests, key=lambda c: (c.time, c.frame_index))
+    masks, _ = estimate_motion_masks([c.image.cpu().numpy() for c in frames],
+                                     [c.K.double().cpu().numpy() for c in frames],
+                                     [c.viewmat.double().cpu().numpy() for c in frames])
+    by_name = {c.image_name: m for c, m in zip(frames, masks)}
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, mask in by_name.items():
+        cv2.imwrite(str(folder / f"{name}.png"), mask.astype(np.uint8) * 255)
+    return [by_name[c.image_name] for c in tests]
+
+
+def _ply_points(path: Path) -> np.ndarray:
+    from plyfile import PlyData
+
+    vertex = PlyData.read(str(path))["vertex"]
+    return np.stack([vertex["x"], vertex["y"], vertex["z"]], 1).astype(np.float64)
+
+
+def camera_depths(points: np.ndarray, camera) -> tuple[np.ndarray, np.ndarray]:
+    """(depth z [P], inside [P] bool: in front of the camera and projecting inside the image)."""
+    viewmat, K = camera.viewmat.double().cpu().numpy(), camera.K.double().cpu().numpy()
+    cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = cam[:, 2]
+    safe = np.where(np.abs(z) > 1e-12, z, 1e-12)
+    u, v = K[0, 0] * cam[:, 0] / safe + K[0, 2], K[1, 1] * cam[:, 1] / safe + K[1, 2]
+    return z, (z > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+
+
+def canonical_check(run: Path, scene) -> dict | None:
+    """Where ReFlow's initial clouds (`reflow/static.ply`, `dynamic.ply`) lie, against the scene.
+
+    static depth / scene depth: median depth of the static points that project into the training
+    views over the scene's reference depth (the dataset's points, else sqrt(near * far) of its
+    bounds); static in view: mean over training cameras of the fraction of static points inside
+    the image and beyond the rasterizer's near plane (what can render at all); dynamic spread: std of the dynamic points over the scene depth
+    (about 0 = collapsed to one position). None for a run without those files."""
+    static_file, dynamic_file = run / "reflow" / "static.ply", run / "reflow" / "dynamic.ply"
+    if not static_file.is_file():
+        return None
+    static = _ply_points(static_file)
+    cams = scene.train_cameras
+    if scene.point_cloud is not None and len(scene.point_cloud.points):
+        reference = float(np.median(np.concatenate(
+            [z[inside] for z, inside in (camera_depths(scene.point_cloud.points.astype(np.float64), c) for c in cams)])))
+        source = "dataset points"
+    elif scene.near_far is not None:
+        reference, source = float(np.sqrt(scene.near_far[0] * scene.near_far[1])), "bounds"
+    else:
+        return None
+    seen = [camera_depths(static, c) for c in cams]
+    inside_depths = np.concatenate([z[inside] for z, inside in seen]) if seen else np.zeros(0)
+    check = {"reference_depth": reference, "reference": source,
+             "static depth / scene depth": float(np.median(inside_depths)) / reference if len(inside_depths) else None,
+             "static in view %": 100.0 * float(np.mean([(inside & (z > NEAR_PLANE)).mean() for z, inside in seen]))}
+    if dynamic_file.is_file():
+        dynamic = _ply_points(dynamic_file)
+        check["dynamic spread"] = float(np.linalg.norm(dynamic.std(0))) / reference if len(dynamic) else None
+    return check
+
+
+def region_psnr(render: np.ndarray, gt: np.ndarray, region: np.ndarray) -> float | None:
+    """PSNR (peak 255) over the pixels of `region` ([H, W] bool) of two [H, W, 3] uint8 images;
+    None for an empty region, +inf for identical pixels."""
+    if not region.any():
+        return None
+    diff = render[region].astype(np.float64) - gt[region].astype(np.float64)
+    mse = float(np.mean(diff ** 2))
+    return math.inf if mse == 0 else 10.0 * math.log10(255.0 ** 2 / mse)
+
+
+def masked_metrics(run: Path, masks: list[np.ndarray]) -> dict[str, float | None]:
+    """Mean over held-out views of PSNR inside / outside the masks, from the saved renders."""
+    test_dir = latest_test_dir(run)
+    inside, outside = [], []
+    for index, mask in enumerate(masks):
+        name = f"{index:05d}.png"
+        render, gt = cv2.imread(str(test_dir / "renders" / name)), cv2.imread(str(test_dir / "gt" / name))
+        if render is None or gt is None:
+            raise SuiteError(f"missing {test_dir}/renders or gt/{name}")
+        if mask.shape != gt.shape[:2]:
+            raise SuiteError(f"mask {mask.shape} vs render {gt.shape[:2]} for {test_dir / 'gt' / name}")
+        for values, region in ((inside, mask), (outside, ~mask)):
+            value = region_psnr(render, gt, region)
+            if value is not None:
+                values.append(value)
+    return {"PSNR-mask": float(np.mean(inside)) if inside else None,
+            "PSNR-outside": float(np.mean(outside)) if outside else None}
+
+
+def summarise(run: Path, masks: list[np.ndarray], scene) -> dict:
+    """The figures of one finished run."""
+    results = json.loads((run / "results.json").read_text())
+    key = max((k for k in results if k.startswith("ours_")), key=lambda k: int(k.split("_")[1]))
+    log = [json.loads(line) for line in (run / "train_log.jsonl").read_text().splitlines() if line.strip()]
+    end = [r for r in log if r.get("kind") == "train_end"]
+    row = {"PSNR": results[key]["PSNR"], "SSIM": results[key]["SSIM"], **masked_metrics(run, masks),
+           "mask %": 100.0 * float(np.mean([m.mean() for m in masks])) if masks else None,
+           "train_s": end[-1].get("wall_seconds") if end else None,
+           "code": json.loads((run / DONE_FILE).read_text()).get("code")}
+    if "reflow" in results:
+        row["reflow"] = results["reflow"]
+        row["canonical_check"] = canonical_check(run, scene)
+    return row
+
+
+def side_by_side(capture: Capture, runs: dict[str, Path], masks: list[np.ndarray], images: Path) -> Path | None:
+    """GT | one column per method for the two held-out views with the most masked pixels."""
+    if len(runs) < 2 or not masks:
+        return None
+    sys.path.insert(0, str(ROOT / "scripts"))
+    import side_by_side as tool
+
+    views = sorted(np.argsort([-m.sum() for m in masks], kind="stable")[:2].tolist())
+    width = masks[0].shape[1]
+    output = images / f"real_{capture.name}.jpg"
+    tool.main([*(str(r) for r in runs.values()), "--views", *map(str, views),
+               "--scale", str(max(1, math.ceil(320 / width))), "-o", str(output)])
+    return output
+
+
+def table(rows: dict[str, dict[str, dict]]) -> str:
+    """Markdown: one line per (capture, method)."""
+    fmt = {"SSIM": "{:.3f}", "train_s": "{:.0f}", "mask %": "{:.1f}", "code": "{}"}
+    lines = ["| capture | method | " + " | ".join(COLUMNS) + " |", "|---|---|" + "---:|" * (len(COLUMNS) - 1) + "---|"]
+    for name, methods in rows.items():
+        for method, values in methods.items():
+            cells = " | ".join("-" if values.get(c) is None else fmt.get(c, "{:.2f}").format(values[c]) for c in COLUMNS)
+            lines.append(f"| {name} | {method} | {cells} |")
+    return "\n".join(lines)
+
+
+CHECK_COLUMNS = ("static depth / scene depth", "static in view %", "dynamic spread")
+
+
+def canonical_table(rows: dict[str, dict[str, dict]]) -> str:
+    """Markdown: where each ReFlow run's initial clouds lie (canonical_check), '' when none has them."""
+    lines = []
+    for name, methods in rows.items():
+        for method, values in methods.items():
+            check = values.get("canonical_check")
+            if check:
+                cells = " | ".join("-" if check.get(c) is None else f"{check[c]:.3g}" for c in CHECK_COLUMNS)
+                lines.append(f"| {name} | {method} | {cells} | {check['reference']} ({check['reference_depth']:.3g}) |")
+    if not lines:
+        return ""
+    head = ["| capture | method | " + " | ".join(CHECK_COLUMNS) + " | scene depth from |", "|---|---|" + "---:|" * 3 + "---|"]
+    return "\n".join(head + lines)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--captures", help="comma list of registry names (default: all)")
+    parser.add_argument("--methods", default=",".join(DEFAULT_METHODS), help=f"comma list of {', '.join(METHODS)}")
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder holding the captures")
+    parser.add_argument("--out", type=Path, default=ROOT / "output" / "real")
+    parser.add_argument("--images", type=Path, default=ROOT / "docs" / "images", help="where real_<capture>.jpg go")
+    parser.add_argument("--no-images", action="store_true", help="write no side-by-side images")
+    parser.add_argument("--jobs", type=int, default=1, help="trainings at once (one thread each when > 1)")
+    parser.add_argument("--coarse_iterations", type=int, default=300)
+    parser.add_argument("--iterations", type=int, default=2000)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--fetch-instructions", action="store_true", help="print how to fetch each capture, then exit")
+    parser.add_argument("--setup", metavar="NAME", help="extract (and prepare) capture NAME from --clone, then exit")
+    parser.add_argument("--clone", type=Path, help="a clone (plain or bare) of the capture's repository")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra: list[str] = []
+    if "--" in argv:
+        extra, argv = argv[argv.index("--") + 1:], argv[:argv.index("--")]
+    args = build_parser().parse_args(argv)
+    try:
+        if args.setup:
+            if args.clone is None:
+                raise CaptureError("--setup needs --clone DIR (see --fetch-instructions)")
+            setup(select(args.setup)[0], args.clone, args.data)
+            return 0
+        captures = select(args.captures)
+        if args.fetch_instructions:
+            print("\n\n".join(fetch_instructions(c, args.data) for c in captures))
+            return 0
+        methods = [m for m in args.methods.split(",") if m]
+        unknown = [m for m in methods if m not in METHODS]
+        if unknown:
+            raise CaptureError(f"unknown method(s) {unknown}; known: {', '.join(METHODS)}")
+        require_ready(captures, args.data)
+    except CaptureError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    schedule = {"coarse_iterations": args.coarse_iterations, "iterations": args.iterations, "seed": args.seed}
+    threads = 1 if args.jobs > 1 else int(os.environ.get("OMP_NUM_THREADS", "0")) or max(1, os.cpu_count() or 1)
+    jobs = [(c, m) for c in captures for m in methods]
+    with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        runs = list(pool.map(lambda job: run_one(job[0], job[1], args.data, args.out, schedule, extra, threads), jobs))
+    rows: dict[str, dict[str, dict]] = {}
+    for capture in captures:
+        scene = load_capture(capture, args.data)
+        masks = eval_masks(capture, scene, args.out)
+        mine = {m: r for (c, m), r in zip(jobs, runs) if c is capture}
+        rows[capture.name] = {m: summarise(r, masks, scene) for m, r in mine.items()}
+        if not args.no_images:
+            side_by_side(capture, mine, masks, args.images)
+    text = table(rows)
+    checks = canonical_table(rows)
+    if checks:
+        text += "\n\nReFlow's initial clouds (reflow/static.ply, dynamic.ply) against the scene:\n\n" + checks
+    print(text)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "real_suite.md").write_text(text + "\n")
+    (args.out / "real_suite.json").write_text(json.dumps({"schedule": schedule, "rows": rows}, indent=1, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,188 @@
+"""Is an initial cloud at the scene's scale? Checked before training, like the host checks a dataset cloud.
+
+    result = check_initial_cloud(static_points, dynamic_groups, cameras, anchors)
+    result.passed, result.failure, result.measurements
+
+A canonical cloud built from monocular disparity at the wrong scale still lies inside every view
+(each frame back-projects its own pixels), so coverage alone does not catch it. Three measurements:
+
+- views: the fraction of training views that see a static point (the host's
+  `check_cloud_against_cameras`); at least MIN_VIEWS ("most training views").
+- depth: where the host's sparse points (`anchors`) fall on a cell (CELL_PX pixels) that the static
+  cloud covers, the ratio of the cloud's nearest depth in that cell to the sparse point's depth;
+  the median over every sampled view must lie in DEPTH_RATIO. Without sparse points: the fraction
+  of the static points whose depth lies inside the dataset's [near / 2, 2 far] bounds in the views
+  that see them, at least MIN_IN_BOUNDS.
+- dynamic spread: per group (one keyframe's seeds, or the reference frame's cloud), the RMS
+  distance of its points to their centroid x sqrt(2), divided by the radius the group's mask would
+  have in the world at the static scene's depth there (sqrt(mask pixels / pi) x depth / focal;
+  depth: the sparse points' median in that view, else the bounds' geometric mean, else the static
+  cloud's). A flat disc at that depth gives 1; the median over groups must reach MIN_SPREAD. All
+  points at one position (seen on a real capture) give 0.
+
+Views are evenly subsampled (MAX_VIEWS) and clouds randomly (MAX_POINTS, seeded): a check costs
+well under a second.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from baselines.data.cloud_check import check_cloud_against_cameras
+
+from ..disparity import camera_bounds, project
+
+MIN_VIEWS = 0.8
+DEPTH_RATIO = (0.7, 1.4)
+MIN_IN_BOUNDS = 0.8
+MIN_SPREAD = 0.1
+CELL_PX = 4
+MAX_VIEWS = 16
+MAX_POINTS = 50_000
+
+
+@dataclass
+class DynamicGroup:
+    """Dynamic points [P, 3] seeded from `camera`'s mask [H, W] bool."""
+
+    camera: object
+    mask: np.ndarray
+    points: np.ndarray
+
+
+@dataclass
+class CloudCheck:
+    """passed; failure: one sentence naming the failing measurement (None when passed)."""
+
+    passed: bool
+    failure: str | None
+    measurements: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        return {"passed": self.passed, "failure": self.failure, **self.measurements}
+
+
+def _subsample(points: np.ndarray, limit: int, seed: int = 0) -> np.ndarray:
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(points) > limit:
+        points = points[np.random.default_rng(seed).choice(len(points), limit, replace=False)]
+    return points
+
+
+def _views(cameras: Sequence) -> list:
+    cameras = list(cameras)
+    if len(cameras) <= MAX_VIEWS:
+        return cameras
+    return [cameras[i] for i in np.linspace(0, len(cameras) - 1, MAX_VIEWS).round().astype(int)]
+
+
+def _cells(camera, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(flat cell index [P], depth [P]) of the points inside `camera` (cells of CELL_PX pixels)."""
+    x, y, z = project(points, camera)
+    cols, rows = -(-camera.width // CELL_PX), -(-camera.height // CELL_PX)
+    cx, cy = np.floor(x / CELL_PX).astype(int), np.floor(y / CELL_PX).astype(int)
+    inside = (z > 1e-9) & (x >= 0) & (x < camera.width) & (y >= 0) & (y < camera.height)
+    return (cy * cols + cx)[inside], z[inside]
+
+
+def depth_ratio_to_anchors(static: np.ndarray, anchors: np.ndarray, cameras: Sequence) -> tuple[float | None, int]:
+    """(median of cloud depth / sparse-point depth over covered cells, number of comparisons)."""
+    ratios = []
+    for cam in _views(cameras):
+        cells, z = _cells(cam, static)
+        if not len(cells):
+            continue
+        size = (-(-cam.width // CELL_PX)) * (-(-cam.height // CELL_PX))
+        nearest = np.full(size, np.inf)
+        np.minimum.at(nearest, cells, z)
+        a_cells, a_z = _cells(cam, anchors)
+        covered = np.isfinite(nearest[a_cells])
+        ratios.append(nearest[a_cells[covered]] / a_z[covered])
+    ratios = np.concatenate(ratios) if ratios else np.zeros(0)
+    return (float(np.median(ratios)) if len(ratios) else None), len(ratios)
+
+
+def fraction_in_bounds(static: np.ndarray, cameras: Sequence) -> float | None:
+    """Fraction of (point, view) sightings whose depth lies in [near / 2, 2 far]; None without bounds."""
+    inside, total = 0, 0
+    for cam in _views(cameras):
+        bounds = camera_bounds(cam)
+        if bounds is None:
+            return None
+        _, z = _cells(cam, static)
+        inside += int(((z >= bounds[0] / 2) & (z <= bounds[1] * 2)).sum())
+        total += len(z)
+    return inside / total if total else 0.0
+
+
+def _reference_depth(camera, anchors: np.ndarray | None, static: np.ndarray) -> float | None:
+    for points in (anchors, None, static):
+        if points is None:
+            bounds = camera_bounds(camera)
+            if bounds is not None:
+                return float(np.sqrt(bounds[0] * bounds[1]))
+            continue
+        if len(points):
+            _, z = _cells(camera, points)
+            if len(z):
+                return float(np.median(z))
+    return None
+
+
+def dynamic_spread(groups: Sequence[DynamicGroup], anchors: np.ndarray | None, static: np.ndarray) -> list[float]:
+    """Spread ratio of each group (see the module docstring); groups without a reference are skipped."""
+    out = []
+    for group in groups:
+        points = np.asarray(group.points, np.float64).reshape(-1, 3)
+        pixels = int(np.asarray(group.mask, bool).sum())
+        depth = _reference_depth(group.camera, anchors, static)
+        if len(points) < 2 or pixels == 0 or not depth:
+            continue
+        focal = float(group.camera.K[0, 0])
+        radius = np.sqrt(pixels / np.pi) * depth / focal
+        rms = float(np.sqrt(((points - points.mean(0)) ** 2).sum(1).mean())) if np.isfinite(points).all() else 0.0
+        out.append(rms * np.sqrt(2.0) / radius)
+    return out
+
+
+def check_initial_cloud(static: np.ndarray, groups: Sequence[DynamicGroup], cameras: Sequence,
+                        anchors: np.ndarray | None = None) -> CloudCheck:
+    """The three measurements of the module docstring; the first failing one names the failure."""
+    static = _subsample(static, MAX_POINTS)
+    anchors = None if anchors is None or len(anchors) == 0 else _subsample(anchors, MAX_POINTS, 1)
+    measurements: dict = {"static_points": len(static)}
+    if not len(static) or not np.isfinite(static).all():
+        return CloudCheck(False, "the static cloud is empty or not finite", measurements)
+    coverage = check_cloud_against_cameras(static, cameras)
+    measurements["views_seeing"] = coverage.views_seeing
+    if coverage.views_seeing < MIN_VIEWS:
+        return CloudCheck(False, f"only {coverage.views_seeing:.0%} of the training views see a static point "
+                                 f"(need {MIN_VIEWS:.0%})", measurements)
+    if anchors is not None:
+        ratio, count = depth_ratio_to_anchors(static, anchors, cameras)
+        measurements.update(depth_ratio=ratio, depth_comparisons=count)
+        lo, hi = DEPTH_RATIO
+        if ratio is not None and not lo <= ratio <= hi:
+            return CloudCheck(False, f"static depth is {ratio:.3g}x the sparse points' (median over {count} "
+                                     f"points; need {lo}-{hi}x)", measurements)
+    else:
+        share = fraction_in_bounds(static, cameras)
+        measurements["in_bounds"] = share
+        if share is not None and share < MIN_IN_BOUNDS:
+            return CloudCheck(False, f"only {share:.0%} of the static points lie within the dataset's near/far "
+                                     f"bounds (need {MIN_IN_BOUNDS:.0%})", measurements)
+    spreads = dynamic_spread(groups, anchors, static)
+    if spreads:
+        spread = float(np.median(spreads))
+        measurements.update(dynamic_spread=spread, dynamic_groups=len(spreads))
+        if spread < MIN_SPREAD:
+            return CloudCheck(False, f"the dynamic cloud is collapsed: spread {spread:.3g}x the object's image "
+                                     f"footprint at the scene's depth (median over {len(spreads)} keyframes; "
+                                     f"need {MIN_SPREAD})", measurements)
+    return CloudCheck(True, None, measurements)
+
+
+__all__ = ["CloudCheck", "DynamicGroup", "check_initial_cloud", "depth_ratio_to_anchors", "dynamic_spread",
+           "fraction_in_bounds"]

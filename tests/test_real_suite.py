@@ -1,0 +1,201 @@
+"""benchmarks/real_suite.py + real_captures.py: registry, missing-capture error, extraction, resume, in-mask PSNR."""
+from __future__ import annotations
+
+import json
+import os
+import math
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from benchmarks import real_captures, real_suite
+from benchmarks.real_captures import CAPTURES, Capture, CaptureError
+
+
+def test_registry_pins_every_capture_to_a_commit_and_a_known_family():
+    for name, capture in CAPTURES.items():
+        assert name == capture.name
+        assert re.fullmatch(r"[0-9a-f]{40}", capture.commit), name
+        assert capture.family in real_captures.FAMILIES, name
+        assert re.fullmatch(r"[\w.-]+/[\w.-]+", capture.repo), name
+        assert bool(capture.keep) == (capture.family == "nvidia"), name  # nvidia copies named entries only
+
+
+def test_missing_capture_stops_before_training_naming_repository_commit_and_setup(tmp_path, capsys):
+    code = real_suite.main(["--captures", "nvidia_balloon1", "--data", str(tmp_path), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    capture = CAPTURES["nvidia_balloon1"]
+    assert code == 2
+    assert err.startswith("error: capture(s) not found: nvidia_balloon1")
+    assert capture.repo in err and capture.commit in err and "--setup nvidia_balloon1" in err
+    assert not (tmp_path / "out").exists()  # nothing trained, nothing written
+
+
+def test_unknown_capture_and_method_are_one_line_errors(tmp_path, capsys):
+    assert real_suite.main(["--captures", "nope", "--data", str(tmp_path)]) == 2
+    assert "unknown capture(s) ['nope']" in capsys.readouterr().err
+    assert real_suite.main(["--methods", "reflow,fancy", "--data", str(tmp_path)]) == 2
+    assert "unknown method(s) ['fancy']" in capsys.readouterr().err
+
+
+def test_fetch_instructions_print_clone_and_setup_lines(tmp_path, capsys):
+    assert real_suite.main(["--fetch-instructions", "--captures", "davis_lady_running", "--data", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "git clone https://github.com/Junyi42/monst3r" in out
+    assert "--setup davis_lady_running --clone " in out and str(tmp_path) in out
+
+
+@pytest.fixture
+def source_repo(tmp_path) -> tuple[Path, str]:
+    """A git repository with an NVIDIA-layout folder plus files the capture does not keep."""
+    if shutil.which("git") is None:
+        pytest.skip("git is not installed")
+    repo = tmp_path / "repo"
+    scene = repo / "Scene"
+    (scene / "images").mkdir(parents=True)
+    (scene / "disp").mkdir()
+    (scene / "flow").mkdir()
+    cv2.imwrite(str(scene / "images" / "000.png"), np.full((4, 6, 3), 7, np.uint8))
+    np.save(scene / "disp" / "000.npy", np.ones((4, 6), np.float32))
+    np.save(scene / "poses_bounds.npy", np.zeros((1, 17)))
+    (scene / "flow" / "000_fwd.npz").write_bytes(b"not kept")
+    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run(["git", "init", "-q", str(repo)], check=True)
+    subprocess.run([*git, "add", "."], check=True)
+    subprocess.run([*git, "commit", "-qm", "data"], check=True)
+    commit = subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
+    return repo, commit
+
+
+def test_extract_copies_only_the_kept_entries_at_the_pinned_commit(source_repo, tmp_path):
+    repo, commit = source_repo
+    target = tmp_path / "data" / "scene"
+    written = real_captures.extract(repo, commit, "Scene", target, ("images", "disp", "poses_bounds.npy"))
+    assert written == 3
+    assert sorted(p.relative_to(target).as_posix() for p in target.rglob("*") if p.is_file()) == [
+        "disp/000.npy", "images/000.png", "poses_bounds.npy"]
+    assert (cv2.imread(str(target / "images" / "000.png")) == 7).all()
+    capture = Capture(name="scene", family="nvidia", repo="o/r", commit=commit, folder="Scene", what="", keep=("images",))
+    assert not real_captures.is_ready(capture, tmp_path / "empty")
+    assert real_captures.is_ready(capture, tmp_path / "data")
+
+
+def test_extract_names_what_is_missing(source_repo, tmp_path):
+    repo, commit = source_repo
+    with pytest.raises(CaptureError, match="failed in"):
+        real_captures.extract(repo, commit, "Scene", tmp_path / "t", ("images", "motion_masks"))
+    with pytest.raises(CaptureError, match="does not exist"):
+        real_captures.extract(tmp_path / "nowhere", commit, "Scene", tmp_path / "t")
+
+
+def test_region_psnr_counts_only_the_region():
+    gt = np.zeros((4, 4, 3), np.uint8)
+    render = gt.copy()
+    render[:2] = 10                                        # error 10 on the top half only
+    top = np.zeros((4, 4), bool)
+    top[:2] = True
+    assert real_suite.region_psnr(render, gt, top) == pytest.approx(10 * math.log10(255 ** 2 / 100))
+    assert real_suite.region_psnr(render, gt, ~top) == math.inf
+    assert real_suite.region_psnr(render, gt, np.zeros((4, 4), bool)) is None
+
+
+def _fake_run(run: Path, renders: list[np.ndarray], gts: list[np.ndarray]) -> None:
+    for sub, images in (("renders", renders), ("gt", gts)):
+        folder = run / "test" / "ours_10" / sub
+        folder.mkdir(parents=True, exist_ok=True)
+        for i, image in enumerate(images):
+            cv2.imwrite(str(folder / f"{i:05d}.png"), image)
+
+
+def test_masked_metrics_average_over_views_and_check_shapes(tmp_path):
+    gt = np.zeros((4, 4, 3), np.uint8)
+    inside_error = gt.copy()
+    inside_error[0, 0] = 255                               # wrong only inside the mask
+    mask = np.zeros((4, 4), bool)
+    mask[0, 0] = True
+    _fake_run(tmp_path / "run", [inside_error, gt], [gt, gt])
+    metrics = real_suite.masked_metrics(tmp_path / "run", [mask, mask])
+    assert metrics["PSNR-mask"] == math.inf                # mean of 0 dB (view 1) and inf (view 2)
+    only_first = real_suite.masked_metrics(tmp_path / "run", [mask, np.zeros((4, 4), bool)])
+    assert only_first["PSNR-mask"] == pytest.approx(0.0)  # view 2 has no masked pixel: left out
+    assert only_first["PSNR-outside"] == math.inf
+    with pytest.raises(real_suite.SuiteError, match="mask"):
+        real_suite.masked_metrics(tmp_path / "run", [np.zeros((2, 2), bool)] * 2)
+
+
+def test_run_one_redoes_a_torn_run_and_refuses_a_run_of_another_command(tmp_path, monkeypatch):
+    capture = CAPTURES["nvidia_balloon1"]
+    schedule = {"coarse_iterations": 3, "iterations": 5, "seed": 0}
+    calls = []
+
+    def fake_train(command, **kwargs):
+        calls.append(command)
+        return subprocess.CompletedProcess(command, 0)
+
+    monkeypatch.setattr(real_suite.subprocess, "run", fake_train)
+    monkeypatch.setattr(real_suite, "code_version", lambda: "abc")
+    torn = tmp_path / "out" / capture.name / "baseline"
+    torn.mkdir(parents=True)
+    (torn / "leftover.txt").write_text("from a killed run")
+    run = real_suite.run_one(capture, "baseline", tmp_path, tmp_path / "out", schedule, [], 1)
+    assert run == torn and len(calls) == 1 and not (torn / "leftover.txt").exists()
+    assert json.loads((torn / real_suite.DONE_FILE).read_text())["code"] == "abc"
+    real_suite.run_one(capture, "baseline", tmp_path, tmp_path / "out", schedule, [], 1)
+    assert len(calls) == 1                                 # done: reused, not retrained
+    with pytest.raises(real_suite.SuiteError, match="another command"):
+        real_suite.run_one(capture, "baseline", tmp_path, tmp_path / "out", dict(schedule, iterations=6), [], 1)
+
+
+def _write_ply(path: Path, points: np.ndarray) -> None:
+    from plyfile import PlyData, PlyElement
+
+    records = np.zeros(len(points), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+    for k, name in enumerate("xyz"):
+        records[name] = points[:, k]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    PlyData([PlyElement.describe(records, "vertex")]).write(str(path))
+
+
+def test_canonical_check_tells_a_cloud_at_scene_depth_from_one_collapsed_at_the_camera(tmp_path):
+    import torch
+    from types import SimpleNamespace
+
+    from baselines.data import Camera
+
+    K = torch.tensor([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
+    camera = Camera(uid=0, image_name="0", width=64, height=48, K=K, viewmat=torch.eye(4), time=0.0)
+    scene = SimpleNamespace(train_cameras=[camera], point_cloud=None, near_far=(40.0, 60.0))
+    rng = np.random.default_rng(0)
+    at_depth = np.column_stack([rng.uniform(-10, 10, 500), rng.uniform(-8, 8, 500), rng.uniform(45, 52, 500)])
+    _write_ply(tmp_path / "good" / "reflow" / "static.ply", at_depth)
+    _write_ply(tmp_path / "good" / "reflow" / "dynamic.ply", at_depth[:50])
+    good = real_suite.canonical_check(tmp_path / "good", scene)
+    assert good["reference"] == "bounds" and good["reference_depth"] == pytest.approx(math.sqrt(40 * 60))
+    assert good["static depth / scene depth"] == pytest.approx(np.median(at_depth[:, 2]) / math.sqrt(2400), rel=0.05)
+    assert good["static in view %"] > 90 and good["dynamic spread"] > 0.05
+    collapsed = at_depth * 1e-5                             # 1 / raw disparity: everything at the camera centre
+    _write_ply(tmp_path / "bad" / "reflow" / "static.ply", collapsed)
+    _write_ply(tmp_path / "bad" / "reflow" / "dynamic.ply", np.repeat(collapsed[:1], 50, 0))
+    bad = real_suite.canonical_check(tmp_path / "bad", scene)
+    assert bad["static depth / scene depth"] < 1e-4
+    assert bad["static in view %"] == 0.0                   # in front of the camera but before the near plane
+    assert bad["dynamic spread"] == pytest.approx(0.0, abs=1e-9)
+    assert real_suite.canonical_check(tmp_path / "baseline_run", scene) is None
+
+
+def test_run_one_leaves_a_run_that_another_process_is_training_alone(tmp_path, monkeypatch):
+    capture = CAPTURES["nvidia_balloon1"]
+    running = tmp_path / "out" / capture.name / "reflow"
+    running.mkdir(parents=True)
+    (running / "train_log.jsonl").write_text("")
+    (running.parent / "reflow.lock").write_text(str(os.getppid()))   # a live process: our parent
+    monkeypatch.setattr(real_suite.subprocess, "run", lambda *a, **k: pytest.fail("must not train"))
+    with pytest.raises(real_suite.SuiteError, match="being trained by process"):
+        real_suite.run_one(capture, "reflow", tmp_path, tmp_path / "out", {"coarse_iterations": 1, "iterations": 2,
+                                                                           "seed": 0}, [], 1)
+    assert (running / "train_log.jsonl").exists()
