@@ -3,12 +3,17 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from .errors import DatasetError
+
+# np.load parses the .npy header with ast.literal_eval, which is not thread-safe on CPython 3.11
+# before 3.11.8 ("AST constructor recursion depth mismatch", gh-106905); views load in threads.
+_NPY_HEADER_LOCK = threading.Lock()
 
 
 def require_file(path: Path, what: str = "file") -> Path:
@@ -42,7 +47,8 @@ def load_npy(path: Path) -> np.ndarray:
         shown = head[:12].decode("ascii", "replace").encode("unicode_escape").decode("ascii")
         raise DatasetError(f"{path} is not a .npy file (no NumPy header; it starts with '{shown}')")
     try:
-        array = np.load(path, allow_pickle=False)
+        with _NPY_HEADER_LOCK:
+            array = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:
         raise DatasetError(f"malformed .npy file {path}: {exc}") from exc
     if not isinstance(array, np.ndarray) or not np.issubdtype(array.dtype, np.number):

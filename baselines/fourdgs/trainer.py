@@ -129,13 +129,13 @@ class Trainer:
         self.train_cpu_seconds = 0.0
         self.run_folder: RunFolder | None = None  # set by the app: run.json records saves and the end
         self._stop: StopFlag | None = None
+        self.stall_guard = StallGuard(0)  # armed by train() for a run that starts from its initial cloud
 
     def identity(self) -> RunIdentity:
         """The plugins and active components of this run (what a checkpoint must match to resume)."""
         plugins = self.hooks.plugins
         return RunIdentity.of([p.name for p in plugins], {p.name: p.enabled for p in plugins},
                               self.args.model.source_path)
-        self.stall_guard = StallGuard(0)  # armed by train() for a run that starts from its initial cloud
 
     # ------------------------------------------------------------------ set-up
     def build(self) -> None:
