@@ -98,12 +98,12 @@ def test_coarse_camera_flow_leaves_the_moving_object_out(tiny_scene, tmp_path, p
     from reflow_plugin.warp import backward_warp
 
     trainer, plugin = _coarse_camera_flow_step(tiny_scene, tmp_path / "run", pair_mode)
-    views = trainer.ctx.views
-    assert plugin._last is not None and "cf_mc" in plugin._last.losses
-    targets = plugin._targets(trainer.ctx)
-    assert len(plugin._last.directions) == len(targets) >= 1
-    for direction, (k, target, _) in zip(plugin._last.directions, targets):
-        moving = views[k].camera.mask > 0.5
+    assert plugin._last is not None
+    result, pairs = plugin._last
+    assert "cf_mc" in result.losses and len(result.directions) == len(pairs) >= 1
+    for direction, pair in zip(result.directions, pairs):
+        target = pair.target
+        moving = pair.source.camera.mask > 0.5
         assert moving.any(), "the tiny balloon scene has a moving object in every frame"
         assert direction.static.any()
         assert not (direction.static & moving).any(), "moving-object pixels counted as static"
