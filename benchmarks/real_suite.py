@@ -65,6 +65,10 @@ class SuiteError(RuntimeError):
     """A run folder cannot be reused as it is."""
 
 
+class TrainingFailed(SuiteError):
+    """train.py exited non-zero for one (capture, method); the suite goes on with the others."""
+
+
 TRAINING_CODE = (".", ":!benchmarks", ":!tests", ":!docs", ":!README.md")  # what a run's figures depend on
 
 
@@ -113,7 +117,7 @@ def run_one(capture: Capture, method: str, data_root: Path, out: Path, schedule:
     lock.unlink(missing_ok=True)
     if result.returncode != 0:
         tail = (run.parent / f"{method}_train.log").read_text().strip().splitlines()[-3:]
-        raise SuiteError(f"{capture.name}/{method}: train.py exited {result.returncode}: " + " | ".join(tail))
+        raise TrainingFailed(f"train.py exited {result.returncode}: " + " | ".join(tail))
     tmp = run / (DONE_FILE + ".tmp")
     tmp.write_text(json.dumps({"command": command, "code": code}, indent=1))
     tmp.replace(done)
@@ -282,6 +286,9 @@ def table(rows: dict[str, dict[str, dict]]) -> str:
     lines = ["| capture | method | " + " | ".join(COLUMNS) + " |", "|---|---|" + "---:|" * (len(COLUMNS) - 1) + "---|"]
     for name, methods in rows.items():
         for method, values in methods.items():
+            if "failed" in values:  # one cell saying why, the rest left empty
+                lines.append(f"| {name} | {method} | FAILED: {values['failed'].replace('|', '/')} |" + " |" * (len(COLUMNS) - 1))
+                continue
             cells = " | ".join("-" if values.get(c) is None else fmt.get(c, "{:.2f}").format(values[c]) for c in COLUMNS)
             lines.append(f"| {name} | {method} | {cells} |")
     return "\n".join(lines)
@@ -350,16 +357,30 @@ def main(argv: list[str] | None = None) -> int:
     schedule = {"coarse_iterations": args.coarse_iterations, "iterations": args.iterations, "seed": args.seed}
     threads = 1 if args.jobs > 1 else int(os.environ.get("OMP_NUM_THREADS", "0")) or max(1, os.cpu_count() or 1)
     jobs = [(c, m) for c in captures for m in methods]
-    with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        runs = list(pool.map(lambda job: run_one(job[0], job[1], args.data, args.out, schedule, extra, threads), jobs))
+    def attempt(job: tuple[Capture, str]) -> Path | str:
+        """The run folder, or the failure's one-line reason (the other runs go on)."""
+        try:
+            return run_one(job[0], job[1], args.data, args.out, schedule, extra, threads)
+        except TrainingFailed as failure:
+            print(f"error: {job[0].name}/{job[1]}: {failure}", file=sys.stderr)
+            return str(failure)
+
+    try:
+        with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+            runs = list(pool.map(attempt, jobs))
+    except SuiteError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
     rows: dict[str, dict[str, dict]] = {}
     for capture in captures:
         scene = load_capture(capture, args.data)
         masks = eval_masks(capture, scene, args.out)
         mine = {m: r for (c, m), r in zip(jobs, runs) if c is capture}
-        rows[capture.name] = {m: summarise(r, masks, scene) for m, r in mine.items()}
+        rows[capture.name] = {m: summarise(r, masks, scene) if isinstance(r, Path) else {"failed": r}
+                              for m, r in mine.items()}
+        finished = {m: r for m, r in mine.items() if isinstance(r, Path)}
         if not args.no_images:
-            side_by_side(capture, mine, masks, args.images)
+            side_by_side(capture, finished, masks, args.images)
     text = table(rows)
     checks = canonical_table(rows)
     if checks:
@@ -368,7 +389,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "real_suite.md").write_text(text + "\n")
     (args.out / "real_suite.json").write_text(json.dumps({"schedule": schedule, "rows": rows}, indent=1, default=str))
-    return 0
+    return 1 if any(isinstance(r, str) for r in runs) else 0
 
 
 if __name__ == "__main__":

@@ -199,3 +199,26 @@ def test_run_one_leaves_a_run_that_another_process_is_training_alone(tmp_path, m
         real_suite.run_one(capture, "reflow", tmp_path, tmp_path / "out", {"coarse_iterations": 1, "iterations": 2,
                                                                            "seed": 0}, [], 1)
     assert (running / "train_log.jsonl").exists()
+
+
+def test_a_failed_training_is_a_table_row_and_leaves_no_done_marker(tmp_path, monkeypatch):
+    """One diverging run must not abort a sweep of hours: run_one raises TrainingFailed (the log's
+    last lines), the table shows the row as FAILED, and the folder is redone next time."""
+    capture = CAPTURES["nvidia_balloon1"]
+    schedule = {"coarse_iterations": 3, "iterations": 5, "seed": 0}
+
+    def failing_train(command, stdout=None, **kwargs):
+        stdout.write("[train] plugin reflow\nerror: features contains NaN or inf\n")
+        return subprocess.CompletedProcess(command, 2)
+
+    monkeypatch.setattr(real_suite.subprocess, "run", failing_train)
+    monkeypatch.setattr(real_suite, "code_version", lambda: "abc")
+    with pytest.raises(real_suite.TrainingFailed, match="exited 2: .*features contains NaN or inf"):
+        real_suite.run_one(capture, "reflow", tmp_path, tmp_path / "out", schedule, [], 1)
+    run = tmp_path / "out" / capture.name / "reflow"
+    assert not (run / real_suite.DONE_FILE).exists() and not (run.parent / "reflow.lock").exists()
+    text = real_suite.table({capture.name: {"baseline": {"PSNR": 20.0, "SSIM": 0.5},
+                                            "reflow": {"failed": "train.py exited 2: a | b"}}})
+    failed = [line for line in text.splitlines() if "| reflow |" in line][0]
+    assert "FAILED: train.py exited 2: a / b" in failed
+    assert failed.count("|") == text.splitlines()[0].count("|")   # as many cells as the header
