@@ -44,13 +44,17 @@ def pixel_grid(height: int, width: int, like: Tensor) -> Tensor:
 def sqrtm_spd2(a: Tensor, b: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Symmetric square root of [[a, b], [b, c]] (SPD), elementwise: returns its (a, b, c).
 
-    sqrt(M) = (M + s I) / t with s = sqrt(det M), t = sqrt(tr M + 2 s). det is clamped at a tiny
+    sqrt(M) = sqrt(k) (M' + s I) / t with M' = M / k, k = tr M, s = sqrt(det M'), t = sqrt(tr M' + 2 s).
+    Scaling by the trace first keeps det from overflowing float32: a Gaussian whose deformed scale
+    blew up has a screen covariance of ~1e21 px^2 in another view, whose raw det (~1e40) is inf and
+    made NaN flow channels (a real NVIDIA capture, fine iteration ~420). det' is clamped at a tiny
     positive value so near-singular inputs give finite values and gradients.
     """
-    det = (a * c - b * b).clamp_min(1e-20)
-    s = det.sqrt()
-    t = (a + c + 2.0 * s).clamp_min(1e-20).sqrt()
-    return (a + s) / t, b / t, (c + s) / t
+    k = (a + c).clamp_min(1e-20)
+    a1, b1, c1 = a / k, b / k, c / k
+    s = (a1 * c1 - b1 * b1).clamp_min(1e-20).sqrt()
+    scale = k.sqrt() / (a1 + c1 + 2.0 * s).clamp_min(1e-20).sqrt()
+    return (a1 + s) * scale, b1 * scale, (c1 + s) * scale
 
 
 def valid_in_view(projection: Projection, near: float = NEAR) -> Tensor:
