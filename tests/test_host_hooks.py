@@ -186,3 +186,24 @@ def test_partners_are_projected_not_rendered_and_stay_out_of_the_loss(tiny_scene
     view = plugin.views[0]
     expected = (view.image - view.camera.image).abs().mean()
     torch.testing.assert_close(ctx.losses["l1"].detach(), expected.detach())  # the partner adds no loss
+
+
+def test_non_finite_plugin_channel_is_named_with_its_count(tiny_scene, tmp_path):
+    """The rasterizer only knows "features"; composite_view names the block (a plugin's channel
+    or the colours) and how many Gaussians carry NaN/inf."""
+    from baselines.fourdgs.app import build_trainer
+    from baselines.fourdgs.renderer import composite_view, prepare_view
+    from tests.test_trainer import base_argv
+
+    trainer = build_trainer(base_argv(tiny_scene, tmp_path / "run", 1, 1))
+    trainer.build()
+    trainer._begin_stage("coarse", 1)
+    ctx = trainer.ctx
+    view = prepare_view(ctx.model, trainer.train_cameras[0], "coarse")
+    channel = torch.zeros(view.colors.shape[0], 2)
+    channel[[3, 7], 1] = float("nan")
+    with pytest.raises(ValueError, match=r"'my_flow' in 2 Gaussian\(s\) \(of \d+\)") as info:
+        composite_view(view, ctx.background, {"fine": torch.zeros(view.colors.shape[0], 1), "my_flow": channel})
+    assert "'fine'" not in str(info.value) and "'colours'" not in str(info.value)
+    assert trainer.train_cameras[0].image_name in str(info.value)
+    trainer.run_log.close()

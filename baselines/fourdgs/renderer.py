@@ -67,9 +67,12 @@ def composite_view(
     features = torch.cat(blocks, dim=1) if len(blocks) > 1 else view.colors
     bg = torch.cat([background, background.new_zeros(sum(widths))]) if widths else background
     cam = view.camera
-    image, depth, alpha = composite(
-        view.projection, view.state.opacities, features, cam.width, cam.height, backend=backend, background=bg
-    )
+    try:
+        image, depth, alpha = composite(
+            view.projection, view.state.opacities, features, cam.width, cam.height, backend=backend, background=bg
+        )
+    except ValueError as error:
+        raise _name_bad_channels(error, cam.image_name, [view.colors, *blocks[1:]], ["colours", *names]) from error
     view.image, view.depth, view.alpha = image[..., :3], depth, alpha
     start = 3
     view.extras = {}
@@ -77,6 +80,19 @@ def composite_view(
         view.extras[name] = image[..., start : start + width]
         start += width
     return view
+
+
+def _name_bad_channels(error: ValueError, image_name: str, blocks: list[Tensor], names: list[str]) -> ValueError:
+    """The rasterizer's "features contains NaN or inf", with the block (colours or a plugin's channel)
+    and the number of Gaussians named; other errors unchanged. Only runs when compositing failed."""
+    bad = [(name, int((~torch.isfinite(block)).any(dim=1).sum())) for name, block in zip(names, blocks)]
+    bad = [(name, count) for name, count in bad if count]
+    if not bad:
+        return error
+    what = ", ".join(f"{name!r} in {count} Gaussian(s)" for name, count in bad)
+    return ValueError(f"non-finite per-Gaussian channels while rendering view {image_name}: {what} "
+                      f"(of {blocks[0].shape[0]}); the channels' producer (the host for colours, else the plugin "
+                      f"that adds them) computed them from this iteration's Gaussians")
 
 
 def render(
