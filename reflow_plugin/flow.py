@@ -29,6 +29,8 @@ from torch import Tensor
 from baselines.render import Projection
 
 NEAR = 0.01  # the rasterizer's near plane
+MAX_FOOTPRINT_PX = 1e4  # screen std (px) beyond which a projected Gaussian is no flow target: wider than any image
+MAX_SCREEN_PX = 1e6  # |projected centre| (px) beyond which likewise
 VALID_COVERAGE = 0.99  # share of a pixel's weight that must come from Gaussians valid in view b
 FLOW_CHANNELS = 7  # A (4) + c (2) + validity (1)
 
@@ -63,24 +65,43 @@ def valid_in_view(projection: Projection, near: float = NEAR) -> Tensor:
     return (projection.depths >= near) & finite
 
 
+def plausible_on_screen(projection: Projection) -> Tensor:
+    """[N] bool: a screen footprint (sqrt of the covariance's trace) below MAX_FOOTPRINT_PX and a
+    centre within MAX_SCREEN_PX. A dynamic Gaussian whose deformed scale blew up at t_b (a real
+    NVIDIA capture: cov ~1e21 px^2, 1e10 px flows) gives no usable target, and its numbers made
+    the flow loss's gradients overflow. NaN compares False."""
+    trace = projection.cov2d[:, 0, 0] + projection.cov2d[:, 1, 1]
+    return (trace <= MAX_FOOTPRINT_PX ** 2) & (projection.means2d.abs() <= MAX_SCREEN_PX).all(dim=1)
+
+
 def flow_features(proj_a: Projection, proj_b: Projection, near: float = NEAR) -> Tensor:
     """Per-Gaussian channels [N, 7] = (A_00, A_01, A_10, A_11, c_x, c_y, v) for view a's pass.
+
+    v = 1 where the Gaussian has a flow target: valid in both views (`valid_in_view`), a finite
+    conic in a, and a plausible footprint in both (`plausible_on_screen`); elsewhere A = I, c = 0.
 
     Args:
         proj_a, proj_b: the same N Gaussians projected into view a (at t_a) and view b (at t_b).
     """
+    valid = (valid_in_view(proj_b, near) & valid_in_view(proj_a, near) & plausible_on_screen(proj_a)
+             & plausible_on_screen(proj_b) & torch.isfinite(proj_a.conics).all(dim=1))
+    # Invalid rows get harmless inputs BEFORE the math, so their extreme numbers reach neither the
+    # channels nor (through torch.where's zero branch times inf) the gradients.
+    cov_b = torch.where(valid[:, None, None], proj_b.cov2d, torch.eye(2, dtype=proj_b.cov2d.dtype,
+                                                                      device=proj_b.cov2d.device))
+    conic_a = torch.where(valid[:, None], proj_a.conics, proj_a.conics.new_tensor([1.0, 0.0, 1.0]))
+    ma = torch.where(valid[:, None], proj_a.means2d, torch.zeros_like(proj_a.means2d))
+    mb = torch.where(valid[:, None], proj_b.means2d, torch.zeros_like(proj_b.means2d))
     # sqrt(S_b)
-    sb_a, sb_b, sb_c = sqrtm_spd2(proj_b.cov2d[:, 0, 0], proj_b.cov2d[:, 0, 1], proj_b.cov2d[:, 1, 1])
+    sb_a, sb_b, sb_c = sqrtm_spd2(cov_b[:, 0, 0], cov_b[:, 0, 1], cov_b[:, 1, 1])
     # sqrt(S_a)^-1 = sqrt(S_a^-1); the conic is (a, b, c) of S_a^-1
-    ia_a, ia_b, ia_c = sqrtm_spd2(proj_a.conics[:, 0], proj_a.conics[:, 1], proj_a.conics[:, 2])
+    ia_a, ia_b, ia_c = sqrtm_spd2(conic_a[:, 0], conic_a[:, 1], conic_a[:, 2])
     a00 = sb_a * ia_a + sb_b * ia_b
     a01 = sb_a * ia_b + sb_b * ia_c
     a10 = sb_b * ia_a + sb_c * ia_b
     a11 = sb_b * ia_b + sb_c * ia_c
-    ma, mb = proj_a.means2d, proj_b.means2d
     cx = mb[:, 0] - (a00 * ma[:, 0] + a01 * ma[:, 1])
     cy = mb[:, 1] - (a10 * ma[:, 0] + a11 * ma[:, 1])
-    valid = valid_in_view(proj_b, near) & valid_in_view(proj_a, near)
     one, zero = torch.ones_like(a00), torch.zeros_like(a00)
     a00, a11 = torch.where(valid, a00, one), torch.where(valid, a11, one)
     a01, a10 = torch.where(valid, a01, zero), torch.where(valid, a10, zero)
