@@ -116,8 +116,10 @@ def run_one(capture: Capture, method: str, data_root: Path, out: Path, schedule:
         result = subprocess.run([sys.executable, *command], cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
     lock.unlink(missing_ok=True)
     if result.returncode != 0:
-        tail = (run.parent / f"{method}_train.log").read_text().strip().splitlines()[-3:]
-        raise TrainingFailed(f"train.py exited {result.returncode}: " + " | ".join(tail))
+        lines = (run.parent / f"{method}_train.log").read_text().strip().splitlines()
+        errors = [line for line in lines if line.startswith("error:")]  # train.py's one-line reason
+        reason = errors[-1] if errors else " | ".join(lines[-3:])
+        raise TrainingFailed(f"train.py exited {result.returncode}: {reason} (log: {run.parent / f'{method}_train.log'})")
     tmp = run / (DONE_FILE + ".tmp")
     tmp.write_text(json.dumps({"command": command, "code": code}, indent=1))
     tmp.replace(done)

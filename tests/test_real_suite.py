@@ -213,8 +213,9 @@ def test_a_failed_training_is_a_table_row_and_leaves_no_done_marker(tmp_path, mo
 
     monkeypatch.setattr(real_suite.subprocess, "run", failing_train)
     monkeypatch.setattr(real_suite, "code_version", lambda: "abc")
-    with pytest.raises(real_suite.TrainingFailed, match="exited 2: .*features contains NaN or inf"):
+    with pytest.raises(real_suite.TrainingFailed, match="exited 2: error: features contains NaN or inf .log: ") as info:
         real_suite.run_one(capture, "reflow", tmp_path, tmp_path / "out", schedule, [], 1)
+    assert "[train] plugin reflow" not in str(info.value)          # the error line, not the log's tail
     run = tmp_path / "out" / capture.name / "reflow"
     assert not (run / real_suite.DONE_FILE).exists() and not (run.parent / "reflow.lock").exists()
     text = real_suite.table({capture.name: {"baseline": {"PSNR": 20.0, "SSIM": 0.5},
