@@ -144,11 +144,9 @@ class SeparatedDeformation(DeformNetwork):
         deformed = dynamic
         if self.window_cull > 0 and centers is not None and log_scales is not None:
             deformed = self._inside_windows(dynamic, times, centers, log_scales)
-        if deformed.numel() == 0:
-            pass
-        elif deformed.numel() == n and not relative:
+        if deformed.numel() == n and not relative:
             out = super().forward(out, field_times)
-        else:
+        elif deformed.numel() > 0:  # none alive at t (every copy culled): nothing to deform
             if relative and self.anchored:
                 moved = self._anchored_forward(out.index(deformed), field_times[deformed])
             else:
