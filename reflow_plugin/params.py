@@ -172,6 +172,11 @@ class ReFlowParams:
     canonical_max_points: int = param(20_000, "at most this many fused static points: the voxel grows in x1.25 "
                                               "steps until the cloud fits (noisy monocular depth thickens "
                                               "surfaces; 0 = no limit)", check=_non_negative)
+    canonical_consistency: float = param(0.05, "ours: multi-view test of the fused static points: a point that "
+                                               "more training frames see through (their aligned depth farther "
+                                               "than it by this relative tolerance) than agree with it is "
+                                               "dropped (floaters of per-frame depth errors; 0 = off)",
+                                         check=_non_negative)
     canonical_iters: int = param(300, "Adam iterations of each alignment (keyframe graph, each clip)",
                                  check=_non_negative)
     canonical_shift: bool = param(False, "also fit a per-frame depth shift (besides the scale); off by default: "

@@ -51,6 +51,7 @@ class CanonicalOptions:
     window: int = 4  # pairs at most this many frames apart inside a clip
     voxel: float = 0.01  # static voxel side as a fraction of the median depth (0 = keep every point)
     max_points: int = 20_000  # static points at most: the voxel grows until the cloud fits (0 = no limit)
+    consistency: float = 0.05  # multi-view depth test of the static points (relative tolerance; 0 = off)
     iterations: int = 300
     cache: bool = True
     mode: str = "coarse_to_fine"  # or "full" (every pair in one graph; O(N^2))
@@ -99,6 +100,7 @@ def options_from_params(p: Any) -> CanonicalOptions:
     """CanonicalOptions from ReFlowParams (its canonical_* fields)."""
     return CanonicalOptions(provider=p.canonical_provider, align=p.canonical_align, clip_len=p.canonical_clip_len,
                             window=p.canonical_window, voxel=p.canonical_voxel, max_points=p.canonical_max_points,
+                            consistency=p.canonical_consistency,
                             iterations=p.canonical_iters,
                             cache=p.canonical_cache, shift=p.canonical_shift,
                             dynamic_points=p.seed_points)
@@ -219,11 +221,13 @@ def build_canonical_space(scene: Any, masks: Sequence[np.ndarray] | None, option
     else:
         states, alignment = unaligned(provider, frames)
     split_start = time.perf_counter()
-    static = static_cloud(provider, states, masks, options.voxel, options.max_points)
+    consistency: dict[str, Any] = {}
+    static = static_cloud(provider, states, masks, options.voxel, options.max_points, options.consistency,
+                          consistency)
     dynamic, reference = dynamic_cloud(provider, states, masks, options.dynamic_points, options.seed)
     report = {"provider": provider.key(), "frames": len(frames), "grid": [len(rows), len(cols)],
               "align": options.align, "alignment": alignment, "static_points": len(static),
-              "dynamic_points": len(dynamic),
+              "dynamic_points": len(dynamic), "consistency": consistency,
               "reference_frame": None if reference is None else cameras[reference].image_name,
               "seconds": {"alignment": alignment["seconds"], "split": time.perf_counter() - split_start,
                           "total": time.perf_counter() - start},
@@ -234,4 +238,7 @@ def build_canonical_space(scene: Any, masks: Sequence[np.ndarray] | None, option
                               "dynamic_points": dynamic.points, "dynamic_colors": dynamic.colors}, reference, report)
     log.info("canonical space: %d static + %d dynamic points (%s, %s)", len(static), len(dynamic), provider.name,
              alignment["mode"])
+    if consistency.get("points"):
+        log.info("canonical space: the multi-view depth test kept %d of %d static grid points (tolerance %g)",
+                 consistency["kept"], consistency["points"], consistency["tolerance"])
     return CanonicalSpace(static, dynamic, reference, report)

@@ -1,12 +1,14 @@
 """Static / dynamic split of the aligned frames (paper 3.2.1 "Static-Dynamic Disentanglement").
 
-    static = static_cloud(provider, states, masks, voxel)      # fused over all frames, outside the masks
+    static = static_cloud(provider, states, masks, voxel, consistency=0.05)  # fused, outside the masks
     dynamic, k = dynamic_cloud(provider, states, masks, max_points)   # reference frame k's masked pixels
 
 Static: every frame's grid pixels outside its motion mask, with positive confidence and depth,
 back-projected with the aligned depth (FrameState.metric_depth) and camera, then voxel-downsampled
 (mean position and colour per voxel of side `voxel` x the median depth; 0 = no downsampling),
 the voxel grown until at most `max_points` remain (monocular depth noise thickens the surfaces).
+With `consistency` > 0 each frame's points are first tested against the other frames' aligned depth
+(consistency.py: a point more frames look through than agree with is dropped).
 Dynamic: the reference frame (largest mask coverage x colour diversity, seeding.reference_frame)
 back-projected at full resolution inside its mask. Without masks every point is static.
 """
@@ -20,6 +22,7 @@ from baselines.data import PointCloud
 
 from ..seeding import reference_frame, seed_dynamic_points
 from .alignment import FrameState
+from .consistency import FrameDepth, consistent
 from .geometry import backproject, to_world
 from .providers import PointmapProvider
 
@@ -51,24 +54,38 @@ def voxel_downsample(points: np.ndarray, colours: np.ndarray, voxel: float) -> t
 
 
 def static_cloud(provider: PointmapProvider, states: Mapping[int, FrameState],
-                 masks: Sequence[np.ndarray] | None, voxel: float, max_points: int = 0) -> PointCloud:
+                 masks: Sequence[np.ndarray] | None, voxel: float, max_points: int = 0,
+                 consistency: float = 0.0, report: dict | None = None) -> PointCloud:
     """Fused static points of every frame in `states` (see the module docstring); with `max_points`
-    the voxel grows by x1.25 steps until at most that many remain."""
+    the voxel grows by x1.25 steps until at most that many remain; with `consistency` (relative depth
+    tolerance, 0 = off) points the other frames contradict are dropped first. `report` (optional)
+    receives the points before / after that test."""
     rows, cols = provider.grid()
-    points, colours = [], []
-    for n, state in sorted(states.items()):
-        z, valid = aligned_depth(provider, n, state, min_confidence=MIN_CONFIDENCE)
-        if masks is not None:
-            valid &= ~masks[n][np.ix_(rows, cols)]
+    order = sorted(states)
+    depths = {n: aligned_depth(provider, n, states[n], min_confidence=MIN_CONFIDENCE) for n in order}
+    grid_masks = {n: None if masks is None else masks[n][np.ix_(rows, cols)] for n in order}
+    frames = [FrameDepth(depths[n][0], provider.K[n], states[n].viewmat, grid_masks[n]) for n in order]
+    points, colours, before = [], [], 0
+    for k, n in enumerate(order):
+        z, valid = depths[n]
+        if grid_masks[n] is not None:
+            valid = valid & ~grid_masks[n]
         cam = backproject(np.nan_to_num(z), provider.K[n], rows, cols)
-        points.append(to_world(cam[valid], state.viewmat))
-        colours.append(provider.colours(n)[valid])
+        world, colour = to_world(cam[valid], states[n].viewmat), provider.colours(n)[valid]
+        before += len(world)
+        if consistency > 0 and len(order) > 1:
+            keep = consistent(world, k, frames, rows, cols, consistency)
+            world, colour = world[keep], colour[keep]
+        points.append(world)
+        colours.append(colour)
+    if report is not None:
+        report.update(tolerance=consistency, points=before, kept=int(sum(len(p) for p in points)))
     if not points or not sum(len(p) for p in points):
         return _empty()
     P, C = np.concatenate(points), np.concatenate(colours).astype(np.float64)
     if voxel > 0:
-        depths = np.concatenate([aligned_depth(provider, n, s)[0].reshape(-1) for n, s in sorted(states.items())])
-        side = voxel * float(np.nanmedian(depths))
+        all_depths = np.concatenate([aligned_depth(provider, n, states[n])[0].reshape(-1) for n in order])
+        side = voxel * float(np.nanmedian(all_depths))
         fused = voxel_downsample(P, C, side)
         while max_points > 0 and len(fused[0]) > max_points:
             side *= 1.25
