@@ -82,6 +82,11 @@ class ReFlowParams:
                                              "only where the rendered dynamic share is >= 0.5, each pixel weighted as "
                                              "in the loss over all pixels; static pixels are left to camera flow "
                                              "matching; all pixels without separation) or all (the paper)", choices=FULL_FLOW_REGIONS)
+    full_flow_static_grad: bool = param(True, "static Gaussians receive the full-flow terms' gradient through "
+                                              "their flow channels (the paper); --no-full_flow_static_grad "
+                                              "(ours) detaches those channels of static Gaussians, so the "
+                                              "terms move only the dynamic Gaussians' positions and shapes "
+                                              "(compositing weights still carry gradient to every Gaussian)")
     flow_every: int = param(1, "compute the flow-matching terms (and their flow channels) every this many "
                                "iterations only: a cost knob of the accuracy-versus-time sweep",
                             check=_positive)

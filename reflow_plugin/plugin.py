@@ -508,7 +508,10 @@ class ReFlowPlugin(Plugin):
             if k != view_index:
                 continue
             if target is not None and self._full_now(ctx):
-                features[FLOW_KEY] = flow_features(ctx.views[k].projection, target.projection)
+                channels = flow_features(ctx.views[k].projection, target.projection)
+                if not self.p.full_flow_static_grad and self.is_enabled("separation"):
+                    channels = torch.where(self._dynamic(ctx).unsqueeze(1), channels, channels.detach())
+                features[FLOW_KEY] = channels
             dynamic_terms = use_full and (self.config.full_flow_dynamic_only or self.config.blur_dynamic_only)
             if use_cam or dynamic_terms:
                 features[DYNAMIC_KEY] = self._dynamic(ctx).to(ctx.views[k].colors.dtype).unsqueeze(1)
