@@ -65,6 +65,7 @@ class MatchingConfig:
     occlusion_alpha1: float = 0.01
     occlusion_alpha2: float = 0.5
     full_flow_dynamic_only: bool = False  # full flow terms on dynamic pixels only (needs extras[DYNAMIC_KEY])
+    full_flow_min_share: float = STATIC_BELOW  # with full_flow_dynamic_only: a pixel's dynamic share at least this
     cam_occlusion: bool = False  # forward-backward test on the two camera flows
     cam_target_static: bool = False  # camera-flow terms only where the pixel lands on a static pixel of b
     blur_dynamic_only: bool = False  # blurred L_mc terms only on dynamic pixels (needs extras[DYNAMIC_KEY])
@@ -215,7 +216,7 @@ def flow_losses(pairs: list[FlowPair], config: MatchingConfig, use_full: list[bo
             weight: Tensor | float = 1.0
             if config.full_flow_dynamic_only:
                 # same per-pixel weight as over all pixels: the mean over the dynamic pixels times their share
-                dynamic = mask & ~_static_pixels(a)
+                dynamic = mask & (dynamic_share(a) >= config.full_flow_min_share)
                 weight = dynamic.sum().float() / mask.sum().clamp_min(1).float()
                 mask = dynamic
             terms.add("mc", warped[..., :3], gt_a, mask, weight)

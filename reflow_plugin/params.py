@@ -82,6 +82,10 @@ class ReFlowParams:
                                              "only where the rendered dynamic share is >= 0.5, each pixel weighted as "
                                              "in the loss over all pixels; static pixels are left to camera flow "
                                              "matching; all pixels without separation) or all (the paper)", choices=FULL_FLOW_REGIONS)
+    full_flow_min_share: float = param(0.5, "ours, with --full_flow_region dynamic: a pixel enters full flow "
+                                             "matching when its rendered dynamic share is at least this (mixed "
+                                             "pixels at the object's edge blend static Gaussians in)",
+                                       check=_fraction)
     full_flow_static_grad: bool = param(True, "static Gaussians receive the full-flow terms' gradient through "
                                               "their flow channels (the paper); --no-full_flow_static_grad "
                                               "(ours) detaches those channels of static Gaussians, so the "
@@ -182,6 +186,11 @@ class ReFlowParams:
                                                "than it by this relative tolerance) than agree with it is "
                                                "dropped (floaters of per-frame depth errors; 0 = off)",
                                          check=_non_negative)
+    canonical_max_fit_residual: float = param(0.1, "ours, monocular disparity with sparse points: when the "
+                                                   "per-frame affine fits of the disparity to the sparse points "
+                                                   "leave a median relative depth error above this, the dense "
+                                                   "cloud is not used (the check fails: the host's cloud + part 1 "
+                                                   "seeds); 0 = no limit", check=_non_negative)
     canonical_iters: int = param(300, "Adam iterations of each alignment (keyframe graph, each clip)",
                                  check=_non_negative)
     canonical_shift: bool = param(False, "also fit a per-frame depth shift (besides the scale); off by default: "

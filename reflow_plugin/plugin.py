@@ -105,6 +105,7 @@ class ReFlowPlugin(Plugin):
             occlusion_alpha2=self.p.occlusion_alpha2, cam_occlusion=self.is_enabled("cam_occlusion"),
             # without separation there is no static/dynamic model to split the pixels by: all pixels
             full_flow_dynamic_only=self.p.full_flow_region == "dynamic" and self.is_enabled("separation"),
+            full_flow_min_share=self.p.full_flow_min_share,
             cam_target_static=self.p.cam_flow_target_static, blur_dynamic_only=self.p.flow_blur_region == "dynamic")
         self._blur_cache: dict[tuple[str, float], Tensor] = {}
         self._camera_motion: dict[tuple[int, int], float] = {}
@@ -277,7 +278,9 @@ class ReFlowPlugin(Plugin):
         sparse points or the bounds, dynamic spread). A failing check logs one warning and falls
         back: the per-frame fits of the dataset's disparity to the sparse points, else to the
         bounds (no joint refinement, no raw pointmaps), else None (the caller uses the host's cloud
-        + part 1's seeds). Recorded in info["canonical_check"].
+        + part 1's seeds). A depth prior whose fits to the sparse points leave more than
+        --canonical_max_fit_residual goes straight to the host's cloud (the per-frame fits use the
+        same prior). Recorded in info["canonical_check"].
         """
         from .canonical import build_canonical_space, options_from_params
         from .canonical.check import check_initial_cloud
@@ -298,10 +301,16 @@ class ReFlowPlugin(Plugin):
             space = build_canonical_space(ctx.scene, masks, opts, cache_dir=self._run_dir(ctx) / "canonical",
                                           progress=not ctx.args.run.quiet, anchors=anchors)
             static, dynamic, times, groups, described = self._compose(ctx, space, masks)
-            check = check_initial_cloud(static.points, groups, ctx.train_cameras, anchors)
+            fits = space.report["alignment"].get("fits") or {}
+            residual = fits.get("median_residual") if fits.get("sources", {}).get("sparse") else None
+            check = check_initial_cloud(static.points, groups, ctx.train_cameras, anchors, residual,
+                                        self.p.canonical_max_fit_residual)
             if check.passed or keep:
                 break
             failures.append(f"{what}: {check.failure}")
+            if check.measurements.get("depth_prior_rejected"):  # the fits alone share the same depth prior
+                space = None
+                break
         else:
             space = None
         if not check.passed and keep:

@@ -58,6 +58,42 @@ def test_partner_step_renders_one_view_and_moves_the_partners_gaussians(partner_
     assert grad is not None and grad[dynamic].abs().sum() > 0  # L_mc moves the Gaussians at t_b
 
 
+def _partner_grads(trainer) -> tuple[torch.Tensor, torch.Tensor]:
+    """(gradient of the partner's projected means [N, 3], dynamic mask [N]) after one fine step."""
+    plugin, ctx = trainer.hooks.plugins[0], trainer.ctx
+    captured = {}
+    original = plugin.extra_losses
+
+    def spy(ctx_):
+        captured["partners"] = list(ctx_.partners)
+        for view in ctx_.partners:
+            view.state.means.retain_grad()
+        return original(ctx_)
+
+    plugin.extra_losses = spy
+    try:
+        ctx.iteration = 1
+        trainer.train_step()
+    finally:
+        plugin.extra_losses = original
+    return captured["partners"][0].state.means.grad, ctx.model.deformation_table.clone()
+
+
+@pytest.mark.parametrize("static_grad", [True, False])
+def test_full_flow_static_grad_flag(tiny_scene, tmp_path, static_grad):
+    """The partner frame is only projected: its static Gaussians' positions reach the losses through
+    their flow channels alone, so --no-full_flow_static_grad leaves them exactly no gradient while
+    the dynamic ones keep theirs; with the paper's default both get one."""
+    argv = _argv(tiny_scene, tmp_path / "run", 2, 4) + ([] if static_grad else ["--no-full_flow_static_grad"])
+    trainer = build_trainer(argv)
+    trainer.build()
+    trainer._begin_stage("fine", 4)
+    grad, dynamic = _partner_grads(trainer)
+    assert grad[dynamic].abs().sum() > 0
+    static = grad[~dynamic].abs().sum()
+    assert (static > 0) if static_grad else (static == 0), float(static)
+
+
 def test_target_side_static_mask_drops_pixels_landing_on_the_moving_object(partner_run):
     ctx = partner_run.ctx
     cams = partner_run.train_cameras

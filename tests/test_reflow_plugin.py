@@ -162,6 +162,24 @@ def test_full_flow_on_dynamic_pixels_only(built):
     assert set(plugin.extra_features(ctx, 0)) == {"reflow_flow", "reflow_dynamic"}  # the share is rendered
 
 
+def test_full_flow_min_share_keeps_mixed_edge_pixels_out(built):
+    """--full_flow_min_share: only pixels whose rendered dynamic share reaches it carry full flow."""
+    views, _ = _pair_views(built)
+    half = pair_losses(views, MatchingConfig(full_flow_dynamic_only=True), use_full=True, use_cam=False)
+    strict = pair_losses(views, MatchingConfig(full_flow_dynamic_only=True, full_flow_min_share=0.9),
+                         use_full=True, use_cam=False)
+    mixed_seen = 0
+    for view, loose, tight in zip(views, half.directions, strict.directions):
+        share = view.extras["reflow_dynamic"][..., 0] / view.alpha[..., 0].clamp_min(1e-6)
+        mixed = (share >= 0.5) & (share < 0.9)
+        assert torch.equal(tight.valid, loose.valid & (share >= 0.9))
+        mixed_seen += int((loose.valid & mixed).sum())
+    assert mixed_seen > 0  # the scene has mixed pixels, so the two settings differ
+    assert float(strict.losses["ff_mc"]) != pytest.approx(float(half.losses["ff_mc"]))
+    plugin = ReFlowPlugin({"ReFlowParams": ReFlowParams(full_flow_min_share=0.9)})
+    assert plugin.config.full_flow_min_share == 0.9
+
+
 def test_camera_flow_occlusion_test_drops_inconsistent_pixels(built):
     from reflow_plugin.warp import occlusion_mask
 
