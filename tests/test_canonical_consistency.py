@@ -95,3 +95,18 @@ def test_on_monocular_priors_fewer_points_leave_the_true_surface(loaded, anchors
     # static point can only be behind it there: occluded); measured 19% of the votes -> 11%
     front = {tol: float(np.mean(_depth_ratios(loaded, p) < 0.95)) for tol, (p, _) in clouds.items()}
     assert front[0.05] < 0.7 * front[0.0], front
+
+
+def test_depth_agreement_ratios_of_a_cloud_against_sparse_points(loaded, anchors):  # noqa: F811
+    """scripts/depth_agreement.py: a cloud ON the sparse points agrees (ratio 1), one pushed 10%
+    farther along the camera rays reads 1.1."""
+    from scripts.depth_agreement import cell_ratios
+
+    cams = loaded.train_cameras
+    nearest, median = cell_ratios(anchors, anchors, cams)
+    assert len(nearest) >= len(anchors) and np.median(nearest) == pytest.approx(1.0, abs=1e-6)
+    assert np.median(median) == pytest.approx(1.0, abs=0.05)  # other points on the cell count too
+    centre = -cams[0].viewmat[:3, :3].double().numpy().T @ cams[0].viewmat[:3, 3].double().numpy()
+    farther = centre + 1.1 * (anchors - centre)  # 10% deeper as seen from camera 0
+    near0, _ = cell_ratios(farther, anchors, cams[:1])
+    assert np.median(near0) == pytest.approx(1.1, rel=0.02)
