@@ -82,9 +82,10 @@ class ReFlowParams:
                                              "only where the rendered dynamic share is >= 0.5, each pixel weighted as "
                                              "in the loss over all pixels; static pixels are left to camera flow "
                                              "matching; all pixels without separation) or all (the paper)", choices=FULL_FLOW_REGIONS)
-    full_flow_min_share: float = param(0.5, "ours, with --full_flow_region dynamic: a pixel enters full flow "
+    full_flow_min_share: float = param(0.9, "ours, with --full_flow_region dynamic: a pixel enters full flow "
                                              "matching when its rendered dynamic share is at least this (mixed "
-                                             "pixels at the object's edge blend static Gaussians in)",
+                                             "pixels at the object's edge blend static Gaussians in; 0.5 before: "
+                                             "-0.5 dB on the suite, all of it a band around the moving objects)",
                                        check=_fraction)
     full_flow_static_grad: bool = param(True, "static Gaussians receive the full-flow terms' gradient through "
                                               "their flow channels (the paper); --no-full_flow_static_grad "
