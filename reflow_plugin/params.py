@@ -192,6 +192,10 @@ class ReFlowParams:
                                                    "leave a median relative depth error above this, the dense "
                                                    "cloud is not used (the check fails: the host's cloud + part 1 "
                                                    "seeds); 0 = no limit", check=_non_negative)
+    canonical_max_depth_error: float = param(0.06, "ours, with sparse points (any provider): when the canonical "
+                                                  "cloud's median relative depth error against them (per covered "
+                                                  "4-px cell) is above this, the dense cloud is not used (the "
+                                                  "host's cloud + part 1 seeds); 0 = no limit", check=_non_negative)
     canonical_iters: int = param(300, "Adam iterations of each alignment (keyframe graph, each clip)",
                                  check=_non_negative)
     canonical_shift: bool = param(False, "also fit a per-frame depth shift (besides the scale); off by default: "

@@ -279,7 +279,8 @@ class ReFlowPlugin(Plugin):
         back: the per-frame fits of the dataset's disparity to the sparse points, else to the
         bounds (no joint refinement, no raw pointmaps), else None (the caller uses the host's cloud
         + part 1's seeds). A depth prior whose fits to the sparse points leave more than
-        --canonical_max_fit_residual goes straight to the host's cloud (the per-frame fits use the
+        --canonical_max_fit_residual, or a cloud whose depth disagrees with them by more than
+        --canonical_max_depth_error, goes straight to the host's cloud (the per-frame fits use the
         same prior). Recorded in info["canonical_check"].
         """
         from .canonical import build_canonical_space, options_from_params
@@ -304,7 +305,7 @@ class ReFlowPlugin(Plugin):
             fits = space.report["alignment"].get("fits") or {}
             residual = fits.get("median_residual") if fits.get("sources", {}).get("sparse") else None
             check = check_initial_cloud(static.points, groups, ctx.train_cameras, anchors, residual,
-                                        self.p.canonical_max_fit_residual)
+                                        self.p.canonical_max_fit_residual, self.p.canonical_max_depth_error)
             if check.passed or keep:
                 break
             failures.append(f"{what}: {check.failure}")

@@ -6,7 +6,8 @@
 Reads `RUN/reflow/static.ply` and the dataset named in the run's `cfg_args`; the sparse points are
 the dataset's own (COLMAP / prepare) or, without them, SIFT triangulated with the known cameras as
 a run does. For every sparse point that a training view sees on a 4-px cell covered by the cloud
-(`reflow_plugin.canonical.check`'s cells, up to 16 views), the ratio of the cloud's depth in that
+(`reflow_plugin.canonical.check.cell_ratios`, the measurement behind `--canonical_max_depth_error`;
+up to 16 views), the ratio of the cloud's depth in that
 cell (nearest point, and median over the cell's points) to the sparse point's depth. Prints the
 medians of the ratio and of |ratio - 1| (the relative depth error of the cloud where the sparse
 points can judge it). Measured: 3.1-4.6% on the simulator's real-priors scenes, 7.8% on DAVIS
@@ -23,25 +24,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from scripts.mask_quality import source_of  # noqa: E402  (the repository root is on sys.path above)
-
-
-def cell_ratios(static: np.ndarray, anchors: np.ndarray, cameras) -> tuple[np.ndarray, np.ndarray]:
-    """(nearest-depth ratio [M], median-depth ratio [M]) over the sparse points seen on covered cells."""
-    from reflow_plugin.canonical.check import _cells, _views
-
-    nearest, median = [], []
-    for cam in _views(cameras):
-        cells, z = _cells(cam, static)
-        order = np.argsort(cells)
-        cells, z = cells[order], z[order]
-        a_cells, a_z = _cells(cam, anchors)
-        lo, hi = np.searchsorted(cells, a_cells), np.searchsorted(cells, a_cells, side="right")
-        for start, stop, depth in zip(lo, hi, a_z):
-            if stop > start:
-                nearest.append(z[start:stop].min() / depth)
-                median.append(np.median(z[start:stop]) / depth)
-    return np.asarray(nearest), np.asarray(median)
+from reflow_plugin.canonical.check import cell_ratios  # noqa: E402  (the repository root is on sys.path above)
+from scripts.mask_quality import source_of  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -98,9 +98,9 @@ def test_on_monocular_priors_fewer_points_leave_the_true_surface(loaded, anchors
 
 
 def test_depth_agreement_ratios_of_a_cloud_against_sparse_points(loaded, anchors):  # noqa: F811
-    """scripts/depth_agreement.py: a cloud ON the sparse points agrees (ratio 1), one pushed 10%
-    farther along the camera rays reads 1.1."""
-    from scripts.depth_agreement import cell_ratios
+    """check.cell_ratios (scripts/depth_agreement.py, --canonical_max_depth_error): a cloud ON the
+    sparse points agrees (ratio 1), one pushed 10% farther along the camera rays reads 1.1."""
+    from reflow_plugin.canonical.check import cell_ratios
 
     cams = loaded.train_cameras
     nearest, median = cell_ratios(anchors, anchors, cams)
@@ -110,3 +110,19 @@ def test_depth_agreement_ratios_of_a_cloud_against_sparse_points(loaded, anchors
     farther = centre + 1.1 * (anchors - centre)  # 10% deeper as seen from camera 0
     near0, _ = cell_ratios(farther, anchors, cams[:1])
     assert np.median(near0) == pytest.approx(1.1, rel=0.02)
+
+
+def test_check_rejects_a_cloud_whose_depth_disagrees_with_the_sparse_points(loaded, anchors):  # noqa: F811
+    """--canonical_max_depth_error: a cloud on the sparse points passes, one whose depth is 10% off
+    along every camera-0 ray fails with the measurement named and the prior marked rejected."""
+    from reflow_plugin.canonical.check import check_initial_cloud
+
+    cams = loaded.train_cameras
+    on = check_initial_cloud(anchors, [], cams, anchors, max_depth_error=0.06)
+    assert on.passed and on.measurements["depth_error"] < 0.01
+    centre = -cams[0].viewmat[:3, :3].double().numpy().T @ cams[0].viewmat[:3, 3].double().numpy()
+    off = check_initial_cloud(centre + 1.1 * (anchors - centre), [], cams[:1], anchors, max_depth_error=0.06)
+    assert not off.passed and off.measurements["depth_prior_rejected"]
+    assert "--canonical_max_depth_error" in off.failure and "10.0%" in off.failure
+    unchecked = check_initial_cloud(centre + 1.1 * (anchors - centre), [], cams[:1], anchors)
+    assert unchecked.passed  # 0 = not checked (the depth ratio 1.1 is inside the scale check's range)
