@@ -79,7 +79,7 @@ class ReFlowParams:
                                                 "pixel of frame b (the paper masks both sides): b's rendered dynamic "
                                                 "share in pair_mode both, b's motion mask in pair_mode partner")
     full_flow_region: str = param("dynamic", "pixels full flow matching is evaluated on: dynamic (ours, the default: "
-                                             "only where the rendered dynamic share is >= 0.5, each pixel weighted as "
+                                             "only where the rendered dynamic share is >= --full_flow_min_share, each pixel weighted as "
                                              "in the loss over all pixels; static pixels are left to camera flow "
                                              "matching; all pixels without separation) or all (the paper)", choices=FULL_FLOW_REGIONS)
     full_flow_min_share: float = param(0.9, "ours, with --full_flow_region dynamic: a pixel enters full flow "

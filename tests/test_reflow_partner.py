@@ -24,10 +24,10 @@ def partner_run(tiny_scene, tmp_path_factory):
     return trainer
 
 
-def test_partner_step_renders_one_view_and_moves_the_partners_gaussians(partner_run):
-    trainer, ctx = partner_run, partner_run.ctx
-    plugin = trainer.hooks.plugins[0]
-    assert plugin.select_batch(ctx) is None  # the host's own single-view sampling, as the baseline's
+def _step_capturing(trainer) -> tuple[list, list]:
+    """One fine training step; returns (composited views, projected partners) with the partners'
+    projected means keeping their gradient."""
+    plugin, ctx = trainer.hooks.plugins[0], trainer.ctx
     captured = {}
     original = plugin.extra_losses
 
@@ -44,7 +44,14 @@ def test_partner_step_renders_one_view_and_moves_the_partners_gaussians(partner_
         trainer.train_step()
     finally:
         plugin.extra_losses = original
-    views, partners = captured["views"], captured["partners"]
+    return captured["views"], captured["partners"]
+
+
+def test_partner_step_renders_one_view_and_moves_the_partners_gaussians(partner_run):
+    trainer, ctx = partner_run, partner_run.ctx
+    plugin = trainer.hooks.plugins[0]
+    assert plugin.select_batch(ctx) is None  # the host's own single-view sampling, as the baseline's
+    views, partners = _step_capturing(trainer)
     assert len(views) == 1 and len(partners) == 1  # one composited view, one projected partner
     a, b = views[0].camera, partners[0].camera
     order = plugin.sampler.position
@@ -58,27 +65,6 @@ def test_partner_step_renders_one_view_and_moves_the_partners_gaussians(partner_
     assert grad is not None and grad[dynamic].abs().sum() > 0  # L_mc moves the Gaussians at t_b
 
 
-def _partner_grads(trainer) -> tuple[torch.Tensor, torch.Tensor]:
-    """(gradient of the partner's projected means [N, 3], dynamic mask [N]) after one fine step."""
-    plugin, ctx = trainer.hooks.plugins[0], trainer.ctx
-    captured = {}
-    original = plugin.extra_losses
-
-    def spy(ctx_):
-        captured["partners"] = list(ctx_.partners)
-        for view in ctx_.partners:
-            view.state.means.retain_grad()
-        return original(ctx_)
-
-    plugin.extra_losses = spy
-    try:
-        ctx.iteration = 1
-        trainer.train_step()
-    finally:
-        plugin.extra_losses = original
-    return captured["partners"][0].state.means.grad, ctx.model.deformation_table.clone()
-
-
 @pytest.mark.parametrize("static_grad", [True, False])
 def test_full_flow_static_grad_flag(tiny_scene, tmp_path, static_grad):
     """The partner frame is only projected: its static Gaussians' positions reach the losses through
@@ -88,7 +74,8 @@ def test_full_flow_static_grad_flag(tiny_scene, tmp_path, static_grad):
     trainer = build_trainer(argv)
     trainer.build()
     trainer._begin_stage("fine", 4)
-    grad, dynamic = _partner_grads(trainer)
+    _, partners = _step_capturing(trainer)
+    grad, dynamic = partners[0].state.means.grad, trainer.ctx.model.deformation_table
     assert grad[dynamic].abs().sum() > 0
     static = grad[~dynamic].abs().sum()
     assert (static > 0) if static_grad else (static == 0), float(static)

@@ -67,7 +67,7 @@ def votes(points: np.ndarray, frames: Sequence[FrameDepth], rows: np.ndarray, co
         else:
             moving = np.zeros(len(idx), bool)
         known = np.isfinite(around).any(1) & ~moving
-        filled = np.where(known[:, None], around, 1.0)  # rows with no depth at all: placeholders, not voted
+        filled = np.where(known[:, None], around, 1.0)  # 1.0 keeps nanmin quiet on rows that cast no vote
         low, high = np.nanmin(filled, 1), np.nanmax(filled, 1)
         zq = z[idx]
         agrees = known & (zq >= low * (1 - tol)) & (zq <= high * (1 + tol))
