@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import os
 import resource
+import shlex
 import shutil
 import statistics
 import subprocess
@@ -68,6 +69,7 @@ WHOLE_PHASES = ("load", "setup", "masks+canonical", "training steps", "partner p
                 "flow maps+losses", "dynamic deformation", "densification pass", "test events", "flow evaluation",
                 "final evaluation", "total")
 PHASES = ("deform_project", "rasterize", "loss_backward", "densify_step")
+TRAIN_FLAGS: list[str] = []  # --train-flags: added to every variant's train.py flags (e.g. the GPU backend)
 
 
 def scene_path(name: str) -> Path:
@@ -85,7 +87,8 @@ def build(variant: str, scene: Path, out: Path):
 
     argv = ["-s", str(scene), "-m", str(out / variant.replace(" ", "_").replace(":", "")),
             "--configs", str(REPO / "arguments" / "synthetic" / "default.py"), "--quiet", "--overwrite",
-            "--densify_until_iter", "0", "--test_iterations", "[]", "--save_iterations", "[]", *VARIANTS[variant]]
+            "--densify_until_iter", "0", "--test_iterations", "[]", "--save_iterations", "[]", *VARIANTS[variant],
+            *TRAIN_FLAGS]
     if "--plugin" in argv:
         argv += ["--flow_vis_every", "0"]
     trainer = build_trainer(argv)
@@ -195,7 +198,7 @@ def whole_run(variant: str, scene: Path, out: Path, coarse: int, fine: int) -> d
     argv = ["-s", str(scene), "-m", str(run_dir), "--configs", str(REPO / "arguments" / "synthetic" / "default.py"),
             "--quiet", "--coarse_iterations", str(coarse), "--iterations", str(fine),
             "--position_lr_max_steps", str(fine), "--densify_until_iter", str(int(0.75 * fine)),
-            "--test_iterations", str(fine), "--save_iterations", str(fine), *WHOLE_VARIANTS[variant]]
+            "--test_iterations", str(fine), "--save_iterations", str(fine), *WHOLE_VARIANTS[variant], *TRAIN_FLAGS]
     if "--plugin" in argv:
         argv += ["--flow_vis_every", "0"]
     report = out / "whole" / f"{variant}.json"
@@ -238,7 +241,10 @@ def main() -> None:
                         help=f"whole run: comma-separated, from {', '.join(WHOLE_VARIANTS)} (baseline first)")
     parser.add_argument("--variants", default=",".join(VARIANTS),
                         help="one-iteration table: comma-separated variants (baseline and reflow always)")
+    parser.add_argument("--train-flags", default="",
+                        help="train.py flags added to every variant, e.g. '--device cuda --backend gsplat'")
     args = parser.parse_args()
+    TRAIN_FLAGS.extend(shlex.split(args.train_flags))
     import logging
 
     logging.basicConfig(level=logging.WARNING)
@@ -248,7 +254,11 @@ def main() -> None:
         unknown = [n for n in names if n not in WHOLE_VARIANTS]
         if unknown or not names or names[0] != "baseline":
             parser.error(f"--whole-variants: baseline first, then any of {list(WHOLE_VARIANTS)}; got {names}")
-        results = {name: whole_run(name, scene, out, args.coarse_iterations, args.whole_iterations) for name in names}
+        results = {}
+        for name in names:  # each variant's total as it ends: a later crash keeps the earlier figures
+            results[name] = whole_run(name, scene, out, args.coarse_iterations, args.whole_iterations)
+            print(f"[whole run] {name}: {results[name]['phases']['total'][0]:.1f} s wall, test PSNR "
+                  f"{results[name].get('psnr')}", flush=True)
         print_whole(results, args.scene, args.coarse_iterations, args.whole_iterations)
         print()
     if args.iterations <= 0:

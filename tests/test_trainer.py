@@ -310,3 +310,16 @@ def test_time_outside_script_rerenders_each_mode(trained_run, capsys):
     assert time_outside.main([str(out)]) == 0
     printed = capsys.readouterr().out
     assert "extrapolate mean / outside" in printed and "mean of 1 runs" in printed
+
+
+def test_lpips_values_reach_results_json_as_numbers(tiny_scene, tmp_path, monkeypatch):
+    # the lpips package returns 0-dim tensors; results.json must get plain numbers (json refuses tensors)
+    from baselines.fourdgs import evaluate
+
+    monkeypatch.setattr(evaluate, "lpips_or_reason", lambda image, gt, net: (torch.tensor(0.25), None))
+    trainer = build_trainer(base_argv(tiny_scene, tmp_path / "run", 0, 0))
+    trainer.build()
+    result = evaluate_cameras(trainer.ctx.model, trainer.test_cameras, "coarse", trainer.ctx.background, "cpu")
+    evaluate.write_metrics(tmp_path / "run", "ours_0", result)
+    written = json.loads((tmp_path / "run" / "results.json").read_text())["ours_0"]
+    assert written["LPIPS-vgg"] == pytest.approx(0.25) and written["LPIPS-alex"] == pytest.approx(0.25)

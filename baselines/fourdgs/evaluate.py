@@ -50,6 +50,12 @@ class EvalResult:
     render_ms: float = 0.0
 
 
+def _synchronize(like: Tensor | None) -> None:
+    """Wait for the GPU when `like` lives on CUDA (timing); nothing on the CPU."""
+    if like is not None and like.device.type == "cuda":
+        torch.cuda.synchronize(like.device)
+
+
 def to_uint8(image: Tensor) -> np.ndarray:
     """[H, W, 3] float in [0, 1] -> [H, W, 3] uint8 BGR for OpenCV."""
     rgb = (image.detach().clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
@@ -104,8 +110,10 @@ def evaluate_cameras(
         render(model, cameras[0], stage, background, backend)
     elapsed = 0.0
     for idx, cam in enumerate(cameras):
+        _synchronize(background)  # on CUDA the clock must wait for the kernels it times
         start = time.perf_counter()
         view = render(model, cam, stage, background, backend)
+        _synchronize(background)
         elapsed += time.perf_counter() - start
         image = view.image.clamp(0, 1)
         gt = cam.image
@@ -113,7 +121,7 @@ def evaluate_cameras(
         row: dict[str, float | None] = {"PSNR": float(psnr(image, gt)), "SSIM": float(ssim(image, gt))}
         for net in ("vgg", "alex"):
             value, reason = lpips_or_reason(image, gt, net=net)
-            row[f"LPIPS-{net}"] = value
+            row[f"LPIPS-{net}"] = None if value is None else float(value)  # a 0-dim tensor: not JSON
             result.lpips_unavailable = reason or result.lpips_unavailable
         if cam.evaluation_mask is not None:
             row.update(region_metrics(image, gt, cam.evaluation_mask))

@@ -768,8 +768,12 @@ class GaussianModel:
             extras,
         )
 
-    def restore(self, captured: tuple | list, opt: Any, source: str = "checkpoint") -> None:
+    def restore(self, captured: tuple | list, opt: Any, source: str = "checkpoint",
+                device: torch.device | str | None = None) -> None:
         """Load a ``capture()`` (ours, or 4DGS's 14-tuple) and rebuild the optimizer with ``opt``.
+
+        The model goes to `device` (default: where the captured positions are; a checkpoint is
+        loaded on the CPU, so a CUDA run passes its device).
 
         Registered buffers/parameters and frozen groups become those of the snapshot (none for
         4DGS's). Everything is checked before the model is changed.
@@ -805,7 +809,7 @@ class GaussianModel:
         expected_groups.update({name: [value.shape] for name, value in parameters.items()})
         check_state_by_group_name(optimizer_state, expected_groups, source)
 
-        device = xyz.device
+        device = xyz.device if device is None else torch.device(device)
         self.unfreeze(list(self._frozen))
         self._deformation = self._deformation.to(device)
         self._deformation.load_state_dict(deformation_state, strict=True)

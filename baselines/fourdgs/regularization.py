@@ -104,7 +104,9 @@ def hexplane_regularization(
     planes: list[Tensor] = []
     smooth: list[float] = []
     l1: list[float] = []
+    device = None
     for level in levels:
+        device = level[0].device if len(level) else device
         if len(level) != 6:  # a 3-plane (static) level has no time planes and is skipped by 4DGS
             continue
         for index, plane in enumerate(level):
@@ -114,8 +116,8 @@ def hexplane_regularization(
             planes.append(plane)
             smooth.append(float(time_smoothness_weight if time_plane else plane_tv_weight))
             l1.append(float(l1_time_planes_weight) if time_plane else 0.0)
-    if not planes:
-        return torch.zeros(())
+    if not planes:  # on the planes' device: the trainer stacks it with the other loss terms
+        return torch.zeros((), device=device)
     return _WeightedPlaneRegularisation.apply(tuple(smooth), tuple(l1), *planes)
 
 

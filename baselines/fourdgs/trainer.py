@@ -496,7 +496,7 @@ class Trainer:
         if "training_state" not in resume:
             return 0
         state = resume["training_state"]
-        self.ctx.model.restore(state.capture, self.opt)
+        self.ctx.model.restore(state.capture, self.opt, device=self.device)
         extra = state.extra or {}
         if extra.get("torch_rng") is not None:
             torch.set_rng_state(extra["torch_rng"])

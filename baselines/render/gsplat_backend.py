@@ -35,8 +35,11 @@ from torch import Tensor
 from .projection import Projection, project_gaussians_torch
 from .tiles import TILE_SIZE
 
-# rasterize_to_pixels accepts at most this many channels per call (it pads up to 513 itself).
-MAX_CHANNELS_PER_CALL = 512
+# Channels per rasterize_to_pixels call. gsplat accepts up to 513 (padding to its instantiated
+# counts), but its backward kernel keeps 16 x 16 x (28 + 4 C) bytes of shared memory per tile: 531 kB
+# at C = 512, more than any GPU has (an H200 crashed on it). At 32: 40 kB, under the 48 kB every
+# CUDA GPU gives without opting in. Training renders at most 12 channels, in one call.
+MAX_CHANNELS_PER_CALL = 32
 
 
 def _gsplat() -> ModuleType:
@@ -76,8 +79,10 @@ def project_gaussians_gsplat(
     Args and returns as projection.project_gaussians_torch. Gradients flow to means, quats and
     scales through gsplat's backward (means2d, conics) and through torch (depths).
     """
-    gsplat = _gsplat()
     _require_float32("means", means)
+    if means.shape[0] == 0:  # gsplat's kernels crash on zero Gaussians (seen on an H200)
+        return project_gaussians_torch(means, quats, scales, viewmat, K, width, height, opacities, near, far, eps2d)
+    gsplat = _gsplat()
     project = gsplat.fully_fused_projection
     kwargs = {}
     if opacities is not None and "opacities" in inspect.signature(project).parameters:
@@ -132,13 +137,17 @@ def composite_gsplat(
 
     Args:
         projection: from any backend's projection stage (radii [N, 2] int32, visible).
-        opacities: [N]. features: [N, C], any C >= 1 (split into calls of at most 512 channels).
+        opacities: [N]. features: [N, C], any C >= 1 (split into calls of at most MAX_CHANNELS_PER_CALL channels).
     Returns:
         (image [H, W, C] without background, alpha [H, W, 1]).
     """
-    gsplat = _gsplat()
     _require_float32("features", features)
     width, height = int(width), int(height)
+    if features.shape[0] == 0:  # nothing to draw (gsplat crashes on zero Gaussians); still in the graph
+        tie = features.sum() + opacities.sum() + projection.means2d.sum() + projection.conics.sum()
+        zeros = features.new_zeros((height, width, features.shape[1] + 1)) + 0.0 * tie
+        return zeros[..., :-1], zeros[..., -1:]
+    gsplat = _gsplat()
     tiles_x = math.ceil(width / TILE_SIZE)
     tiles_y = math.ceil(height / TILE_SIZE)
     radii = projection.radii.to(torch.int32) * projection.visible[:, None]
