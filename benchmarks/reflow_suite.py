@@ -21,7 +21,9 @@ world units, no motion masks, so ReFlow estimates them), in `data/synthetic_real
 `output/suite_real/` by default; PSNR-dynamic still uses the exact masks (gt/motion_masks).
 `reflow_no_align` is the paper's "w/o align" (`--no-canonical_align`; on monocular disparity
 the raw cloud fails the initial-cloud check and the run falls back to the per-frame fits),
-`reflow_no_align_unchecked` the raw cloud kept (`--no-canonical_check`). `--schedule half` is the
+`reflow_no_align_unchecked` the raw cloud kept (`--no-canonical_check`), `reflow_capped` the
+dynamic branch without its scale-free position deltas (`--no-dynamic_scale_free`; identical to
+`reflow` on scenes of extent <= 1, i.e. the exact-priors suite). `--schedule half` is the
 ablation's half schedule (300 coarse + 1000 fine iterations, decay and densification scaled),
 `quarter` half of that again (150 + 500). `--report_only` trains nothing and prints the table of
 the finished runs.
@@ -50,6 +52,8 @@ METHODS = {
     # the same without the check's fallback: the raw pointmaps whatever their scale
     "reflow_no_align_unchecked": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow",
                                   "--no-canonical_align", "--no-canonical_check"],
+    # the dynamic branch before the scale-free position deltas (capped learning rates alone)
+    "reflow_capped": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow", "--no-dynamic_scale_free"],
 }
 SCHEDULES = {
     "full": [],

@@ -132,6 +132,11 @@ class ReFlowParams:
                                               "embedded scene scaled 6x (extent 3.4) diverged to NaN within 200 "
                                               "fine iterations (0 = 4DGS's extent factor, uncapped)",
                                          check=_non_negative)
+    dynamic_scale_free: bool = param(True, "ours: above dynamic_lr_extent_cap, the dynamic branch's position "
+                                           "deltas are multiplied by extent / cap (the state dict keeps the "
+                                           "effective weights), so the branch learns on a scene of any scale as "
+                                           "at extent cap instead of (extent / cap) times more slowly; "
+                                           "--no-dynamic_scale_free: the capped rates alone")
     dynamic_zero_init: bool = param(True, "the dynamic branch's output layers start at zero (Gaussians start "
                                           "at their canonical place at every time)")
     dynamic_aabb_margin: float = param(0.25, "the dynamic HexPlane's box is the dynamic points' box grown by "

@@ -375,14 +375,31 @@ class ReFlowPlugin(Plugin):
                 model._opacity[model.deformation_table] = value
             self._register_windows(model)
         if self.is_enabled("separation"):
-            for group in ("deformation", "grid"):
-                model.scale_learning_rate(group, self._dynamic_lr_multiplier(model))
+            self._scale_dynamic_branch(model)
             if dynamic:
                 model.deformation.fit_box(model.get_xyz.detach()[model.deformation_table], self.p.dynamic_aabb_margin)
             else:
                 log.warning("separation: no Gaussian is labelled dynamic, so the scene is modelled as static "
                             "(label_source=%s; motion masks: %s)", self.p.label_source, self.info.get("mask_source"))
         self._record(ctx)
+
+    def _scale_dynamic_branch(self, model: GaussianModel) -> None:
+        """The dynamic branch's learning rates (`_dynamic_lr_multiplier`) and position scale.
+
+        Above the extent cap the rates stop growing with the extent; with `dynamic_scale_free` the
+        position deltas are multiplied by extent / cap instead (a reparametrisation, exact for the
+        branch: its inputs are normalised to the dynamic box, its loss gradients scale as 1 / extent),
+        so a scene at scale 50 trains its motion as the same scene at extent `cap` would, not 50x
+        more slowly relative to its size (README, "Real priors": truck).
+        """
+        for group in ("deformation", "grid"):
+            model.scale_learning_rate(group, self._dynamic_lr_multiplier(model))
+        extent, cap = float(model.spatial_lr_scale), self.p.dynamic_lr_extent_cap
+        scale = extent / cap if self.p.dynamic_scale_free and cap > 0 and extent > cap else 1.0
+        net = getattr(model.deformation, "deformation_net", None)
+        if net is not None and hasattr(net, "set_position_scale"):
+            net.set_position_scale(scale)
+            self.info["dynamic_position_scale"] = scale
 
     def _dynamic_lr_multiplier(self, model: GaussianModel) -> float:
         """`dynamic_lr_scale`, with 4DGS's scene-extent factor of these rates capped at `dynamic_lr_extent_cap`.
@@ -422,8 +439,7 @@ class ReFlowPlugin(Plugin):
                      self.info["upgrade"]["dynamic"], self.info["upgrade"]["static"],
                      self.info["upgrade"]["threshold_world"])
         if self.is_enabled("separation"):
-            for group in ("deformation", "grid"):
-                ctx.model.scale_learning_rate(group, self._dynamic_lr_multiplier(ctx.model))
+            self._scale_dynamic_branch(ctx.model)
         table = ctx.model.deformation_table
         self.info["labels"] = {"dynamic": int(table.sum()), "static": int((~table).sum())}
 

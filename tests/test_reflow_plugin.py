@@ -309,3 +309,24 @@ def test_dynamic_lr_multiplier_caps_the_extent_factor(extent, cap, expected):
     # the effective rate factor of the dynamic branch (extent x multiplier) never exceeds 10 x cap
     if cap:
         assert extent * plugin._dynamic_lr_multiplier(model) <= 10.0 * cap + 1e-9
+
+
+@pytest.mark.parametrize("extent, flags, expected", [
+    (0.6, {}, 1.0),                                  # below the cap: 4DGS's parametrisation
+    (36.0, {}, 36.0),                                # scale 50 (truck's extent): deltas x extent / cap
+    (36.0, {"dynamic_lr_extent_cap": 4.0}, 9.0),
+    (36.0, {"dynamic_scale_free": False}, 1.0),      # the capped rates alone
+    (36.0, {"dynamic_lr_extent_cap": 0.0}, 1.0),     # uncapped 4DGS rates: nothing to make up for
+])
+def test_dynamic_branch_position_scale_follows_the_capped_extent(extent, flags, expected):
+    from reflow_plugin.separation import SeparatedDeformation
+    from tests._model_helpers import hidden_args
+
+    plugin = ReFlowPlugin({"ReFlowParams": ReFlowParams(**flags)})
+    scaled = []
+    model = types.SimpleNamespace(spatial_lr_scale=extent, deformation=SeparatedDeformation(hidden_args()),
+                                  scale_learning_rate=lambda group, factor: scaled.append((group, factor)))
+    plugin._scale_dynamic_branch(model)
+    assert model.deformation.deformation_net.position_scale == pytest.approx(expected)
+    assert plugin.info["dynamic_position_scale"] == pytest.approx(expected)
+    assert [g for g, _ in scaled] == ["deformation", "grid"]

@@ -19,6 +19,8 @@ because its [N, 192] intermediates page-fault on every allocation.
 
 from __future__ import annotations
 
+import math
+
 from collections.abc import Mapping
 from typing import Any, Protocol, runtime_checkable
 
@@ -136,7 +138,14 @@ def _head(width: int, out: int) -> nn.Sequential:
 
 
 class Deformation(nn.Module):
-    """4DGS's ``Deformation``: HexPlane ``grid`` + ``feature_out`` trunk + per-attribute heads."""
+    """4DGS's ``Deformation``: HexPlane ``grid`` + ``feature_out`` trunk + per-attribute heads.
+
+    ``position_scale`` (ours; 1 = 4DGS): the position head's output is multiplied by it, a
+    reparametrisation that lets a plugin make the branch learn at any scene scale as at unit scale
+    (``set_position_scale`` keeps the function unchanged). The state dict always holds the
+    EFFECTIVE head weights (scale x stored), so checkpoints load in 4DGS and in a model of any
+    scale with the same deformation.
+    """
 
     def __init__(self, args: Any, D: int = 8, W: int = 256, grid_pe: int = 0) -> None:
         super().__init__()
@@ -163,6 +172,23 @@ class Deformation(nn.Module):
         self.feature_out = nn.Sequential(*layers)
         for name, out, _ in _HEADS:
             setattr(self, name, _head(W, out))
+        self.position_scale = 1.0
+        self._register_state_dict_hook(_save_effective_position_head)
+        self.register_load_state_dict_pre_hook(_load_effective_position_head)
+
+    def set_position_scale(self, scale: float) -> None:
+        """Multiply the position head's output by `scale` from now on, keeping the function as it is
+        (its last layer is divided by scale / previous scale)."""
+        scale = float(scale)
+        if not math.isfinite(scale) or scale <= 0:
+            raise ValueError(f"Deformation: position_scale must be finite and > 0, got {scale}")
+        if scale == self.position_scale:
+            return
+        with torch.no_grad():
+            last = self.pos_deform[3]
+            last.weight.mul_(self.position_scale / scale)
+            last.bias.mul_(self.position_scale / scale)
+        self.position_scale = scale
 
     @property
     def get_aabb(self) -> tuple[Tensor, Tensor]:
@@ -201,7 +227,11 @@ class Deformation(nn.Module):
     def forward(self, state: GaussianState, times: Tensor) -> GaussianState:
         deltas = self.head_outputs(self.hidden(state.means, times))
         # 4DGS's mask is 1 without static_mlp/empty_voxel, so value * mask + delta = value + delta.
-        means = state.means + deltas["pos_deform"] if "pos_deform" in deltas else state.means
+        if "pos_deform" in deltas:
+            step = deltas["pos_deform"] if self.position_scale == 1.0 else self.position_scale * deltas["pos_deform"]
+            means = state.means + step
+        else:
+            means = state.means
         log_scales = state.log_scales + deltas["scales_deform"] if "scales_deform" in deltas else state.log_scales
         rotations = state.rotations
         if "rotations_deform" in deltas:
@@ -229,6 +259,26 @@ class Deformation(nn.Module):
     def get_grid_parameters(self) -> list[nn.Parameter]:
         """Every parameter whose name has "grid": the aabb (never trained) and the planes."""
         return [p for name, p in self.named_parameters() if "grid" in name]
+
+
+_POSITION_HEAD = ("pos_deform.3.weight", "pos_deform.3.bias")
+
+
+def _save_effective_position_head(module: Deformation, state_dict: dict, prefix: str, _metadata: Any) -> None:
+    """state_dict hook: the position head's effective weights (new tensors: the dict's entries are
+    the parameters themselves)."""
+    if module.position_scale != 1.0:
+        for key in _POSITION_HEAD:
+            if prefix + key in state_dict:
+                state_dict[prefix + key] = state_dict[prefix + key] * module.position_scale
+
+
+def _load_effective_position_head(module: Deformation, state_dict: dict, prefix: str, *_: Any) -> None:
+    """load_state_dict pre-hook: effective weights -> stored weights at this module's scale."""
+    if module.position_scale != 1.0:
+        for key in _POSITION_HEAD:
+            if prefix + key in state_dict:
+                state_dict[prefix + key] = state_dict[prefix + key] / module.position_scale
 
 
 class DeformNetwork(nn.Module):
