@@ -151,7 +151,8 @@ def test_full_flow_on_dynamic_pixels_only(built):
     for k, (all_dir, dyn_dir) in enumerate(zip(l1_all.directions, l1_dyn.directions)):
         error = (dyn_dir.warped - views[k].camera.image).abs().sum(-1)
         expected.append(error[dyn_dir.valid].sum() / (3 * all_dir.valid.sum()))
-    assert float(l1_dyn.losses["ff_mc"]) == pytest.approx(5.0 * float(torch.stack(expected).mean()), rel=1e-5)
+    got, want = l1_dyn.losses["ff_mc"].item(), 5.0 * torch.stack(expected).mean().item()
+    assert got == pytest.approx(want, rel=1e-5)
     assert not torch.equal(dynamic_only.losses["ff_mc"], everywhere.losses["ff_mc"])
     plugin = ReFlowPlugin({"ReFlowParams": ReFlowParams(full_flow_region="dynamic", pair_mode="both")},
                           enabled=frozenset({"separation", "full_flow"}))
@@ -175,7 +176,7 @@ def test_full_flow_min_share_keeps_mixed_edge_pixels_out(built):
         assert torch.equal(tight.valid, loose.valid & (share >= 0.9))
         mixed_seen += int((loose.valid & mixed).sum())
     assert mixed_seen > 0  # the scene has mixed pixels, so the two settings differ
-    assert float(strict.losses["ff_mc"]) != pytest.approx(float(half.losses["ff_mc"]))
+    assert strict.losses["ff_mc"].item() != pytest.approx(half.losses["ff_mc"].item())
     plugin = ReFlowPlugin({"ReFlowParams": ReFlowParams(full_flow_min_share=0.9)})
     assert plugin.config.full_flow_min_share == 0.9
 
@@ -195,7 +196,7 @@ def test_camera_flow_occlusion_test_drops_inconsistent_pixels(built):
         assert torch.equal(t.static, p.static & consistent)  # the plain mask, minus the inconsistent pixels
         dropped += int((p.static & ~consistent).sum())
     assert dropped > 0, "the pair's views must disagree somewhere for this test to check anything"
-    assert float(tested.losses["cf_mc"]) != float(plain.losses["cf_mc"])
+    assert tested.losses["cf_mc"].item() != plain.losses["cf_mc"].item()
 
 
 def test_skips(built):
