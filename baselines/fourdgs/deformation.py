@@ -20,7 +20,6 @@ because its [N, 192] intermediates page-fault on every allocation.
 from __future__ import annotations
 
 import math
-
 from collections.abc import Mapping
 from typing import Any, Protocol, runtime_checkable
 
