@@ -221,9 +221,13 @@ def print_whole(results: dict, scene: str, coarse: int, fine: int) -> None:
         base = results["baseline"]["phases"].get(phase, [0.0, 0.0])[0]
         ratios = [f"{results[n]['phases'].get(phase, [0.0])[0] / base:.2f}x" if base > 0 else "-" for n in names[1:]]
         print(f"| {phase} | " + " | ".join(cells) + " | " + " | ".join(ratios) + " |")
-    print("| test PSNR / PSNR-dynamic | " + " | ".join(
-        f"{r['psnr']:.2f} / {r['psnr_dynamic']:.2f}" if r.get("psnr") is not None and r.get("psnr_dynamic") is not None
-        else "-" for r in results.values()) + " |" + " |" * (len(names) - 1))
+    def quality(r: dict) -> str:  # a scene without moving pixels has no PSNR-dynamic
+        if r.get("psnr") is None:
+            return "-"
+        return f"{r['psnr']:.2f}" + (f" / {r['psnr_dynamic']:.2f}" if r.get("psnr_dynamic") is not None else " / -")
+
+    print("| test PSNR / PSNR-dynamic | " + " | ".join(quality(r) for r in results.values())
+          + " |" + " |" * (len(names) - 1))
     print("| Gaussians at the end | " + " | ".join(str(r["gaussians"]) for r in results.values()) + " |"
           + " |" * (len(names) - 1))
 
