@@ -23,7 +23,8 @@ world units, no motion masks, so ReFlow estimates them), in `data/synthetic_real
 the raw cloud fails the initial-cloud check and the run falls back to the per-frame fits),
 `reflow_no_align_unchecked` the raw cloud kept (`--no-canonical_check`), `reflow_capped` the
 dynamic branch without its scale-free position deltas (`--no-dynamic_scale_free`; identical to
-`reflow` on scenes of extent <= 1, i.e. the exact-priors suite). `--schedule half` is the
+`reflow` on scenes of extent <= 1, i.e. the exact-priors suite), `reflow_promote` with
+`--promote_residual 3` (identical to `reflow` where the dataset has masks). `--schedule half` is the
 ablation's half schedule (300 coarse + 1000 fine iterations, decay and densification scaled),
 `quarter` half of that again (150 + 500). `--report_only` trains nothing and prints the table of
 the finished runs.
@@ -54,6 +55,8 @@ METHODS = {
                                   "--no-canonical_align", "--no-canonical_check"],
     # the dynamic branch before the scale-free position deltas (capped learning rates alone)
     "reflow_capped": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow", "--no-dynamic_scale_free"],
+    # static Gaussians promoted where the coarse fit leaves unmasked pixels unexplained (estimated masks only)
+    "reflow_promote": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow", "--promote_residual", "3"],
 }
 SCHEDULES = {
     "full": [],

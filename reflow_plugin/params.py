@@ -147,6 +147,11 @@ class ReFlowParams:
                               choices=LABEL_SOURCES)
     label_vote: float = param(0.5, "an initial point is dynamic when it lies inside the motion mask in at "
                                    "least this fraction of the training views that see it", check=_fraction)
+    promote_residual: float = param(0.0, "ours, optional: with ESTIMATED masks, at the start of the fine stage "
+                                         "static Gaussians are made dynamic where the coarse (static) fit "
+                                         "leaves unmasked pixels above this multiple of the view's median "
+                                         "residual in at least label_vote of their views (reflow_plugin/"
+                                         "promotion.py); 0 = off", check=_non_negative)
     seed_points: int = param(20_000, "most dynamic points seeded inside the motion masks, over all keyframes "
                                      "(0 = no seeding)", check=_non_negative)
     dynamic_keyframes: int = param(8, "ours: frames the dynamic points are seeded from, spread over the "

@@ -57,6 +57,7 @@ from .labels import aligned_depths, training_masks, vote_labels
 from .matching import DYNAMIC_KEY, FLOW_KEY, FlowPair, MatchingConfig, dynamic_share, flow_losses
 from .pairs import PairSampler, curriculum_radius
 from .params import ReFlowParams
+from .promotion import missed_motion_maps, promoted_gaussians
 from .seeding import BACKGROUND_FACTOR, keyframes, reference_frame, ring_depth, seed_dynamic_points, window_scale
 from .separation import TIME_CENTER, TIME_LOG_SCALE, SeparatedDeformation
 from .upgrade import upgrade_4dgs_model, written_by_reflow
@@ -453,7 +454,33 @@ class ReFlowPlugin(Plugin):
             self._limit_pair_motion(ctx.train_cameras)
         if ctx.stage == "fine" and self.p.dynamic_warmup > 0 and self.is_enabled("separation"):
             ctx.model.freeze(["deformation", "grid"])
+        flagged = self._missed_motion(ctx)  # rendered while the dynamic Gaussians are still hidden
         self._hide_dynamic_in_coarse(ctx)
+        if flagged is not None:
+            self._promote(ctx, flagged)
+
+    def _missed_motion(self, ctx) -> list[np.ndarray] | None:
+        """Fine-stage start, estimated masks, `promote_residual` > 0: the coarse fit's flagged pixels."""
+        if (ctx.stage != "fine" or self.p.promote_residual <= 0 or not self.is_enabled("separation")
+                or self.masks is None or self.info.get("mask_source") != "estimated"
+                or ctx.args.opt.coarse_iterations <= 0):  # no coarse fit: nothing to read residuals from
+            return None
+        return missed_motion_maps(ctx.model, ctx.train_cameras, self.masks, ctx.background,
+                                  self.p.promote_residual, backend=ctx.args.pipe.backend)
+
+    def _promote(self, ctx, flagged: list[np.ndarray]) -> None:
+        model = ctx.model
+        promoted = torch.from_numpy(promoted_gaussians(model, ctx.train_cameras, flagged, self.p.label_vote))
+        table = model.deformation_table.cpu() | promoted
+        model.set_deformation_table(table)
+        if bool(promoted.any()):
+            model.deformation.fit_box(model.get_xyz.detach()[model.deformation_table], self.p.dynamic_aabb_margin)
+        share = float(np.mean([f.mean() for f in flagged]))
+        self.info["promotion"] = {"promoted": int(promoted.sum()), "dynamic": int(table.sum()),
+                                  "flagged_pixel_share": share}
+        log.info("promotion: %d static Gaussians made dynamic (%.1f%% of unmasked pixels flagged by the coarse "
+                 "fit's residual)", int(promoted.sum()), 100 * share)
+        self._record(ctx)
 
     def _limit_pair_motion(self, cameras) -> None:
         """Partners only among frames whose cameras move at most pair_max_motion x the median motion
