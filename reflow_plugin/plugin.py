@@ -91,6 +91,7 @@ class ReFlowPlugin(Plugin):
         self.p: ReFlowParams = self.params.get("ReFlowParams") or ReFlowParams()
         self.sampler: PairSampler | None = None
         self.masks: list[np.ndarray] | None = None  # per training camera (uid order), True = dynamic
+        self.coarse_fitted = False  # a coarse stage ran in this process (promotion reads its fit)
         self.mask_tensors: dict[int, Tensor] = {}
         self.labels: np.ndarray | None = None  # per initial point, True = dynamic
         self.reference: int | None = None  # training camera the dynamic points come from
@@ -454,6 +455,7 @@ class ReFlowPlugin(Plugin):
             self._limit_pair_motion(ctx.train_cameras)
         if ctx.stage == "fine" and self.p.dynamic_warmup > 0 and self.is_enabled("separation"):
             ctx.model.freeze(["deformation", "grid"])
+        self.coarse_fitted = self.coarse_fitted or (ctx.stage == "coarse" and ctx.args.opt.coarse_iterations > 0)
         flagged = self._missed_motion(ctx)  # rendered while the dynamic Gaussians are still hidden
         self._hide_dynamic_in_coarse(ctx)
         if flagged is not None:
@@ -463,7 +465,7 @@ class ReFlowPlugin(Plugin):
         """Fine-stage start, estimated masks, `promote_residual` > 0: the coarse fit's flagged pixels."""
         if (ctx.stage != "fine" or self.p.promote_residual <= 0 or not self.is_enabled("separation")
                 or self.masks is None or self.info.get("mask_source") != "estimated"
-                or ctx.args.opt.coarse_iterations <= 0):  # no coarse fit: nothing to read residuals from
+                or not self.coarse_fitted):  # no coarse fit here (none asked, or resumed in the fine stage)
             return None
         return missed_motion_maps(ctx.model, ctx.train_cameras, self.masks, ctx.background,
                                   self.p.promote_residual, backend=ctx.args.pipe.backend)

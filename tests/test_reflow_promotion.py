@@ -54,10 +54,10 @@ def test_only_static_gaussians_seen_in_flagged_pixels_are_promoted(tiny_scene, t
     assert not promoted_gaussians(model, cameras, nowhere, vote=0.5).any()
 
 
-def _reflow_run(tiny_scene, out, *extra):
+def _reflow_run(tiny_scene, out, *extra, coarse: int = 20):
     from tests.test_reflow_plugin import _argv
 
-    trainer = build_trainer(_argv(tiny_scene, out, 20, 2, *extra))
+    trainer = build_trainer(_argv(tiny_scene, out, coarse, 2, *extra))
     trainer.build()
     trainer.train()
 
@@ -74,3 +74,5 @@ def test_promotion_runs_once_at_the_fine_start_on_estimated_masks_only(tiny_scen
     _reflow_run(tiny_scene, tmp_path / "dataset", "--promote_residual", "3")  # the dataset's masks: trusted
     info = json.loads((tmp_path / "dataset" / "results.json").read_text())["reflow"]
     assert info["mask_source"] != "estimated" and "promotion" not in info
+    _reflow_run(tiny_scene, tmp_path / "no_coarse", "--label_source", "estimate", "--promote_residual", "3", coarse=0)
+    assert "promotion" not in json.loads((tmp_path / "no_coarse" / "results.json").read_text())["reflow"]
