@@ -12,7 +12,9 @@
 # 4. resume_cuda: a short CUDA run with a checkpoint, resumed on CUDA (the model must come back on
 #    the GPU);
 # 5. benchmarks/reflow_overhead.py whole runs, baseline vs ReFlow, on the GPU (gsplat backend),
-#    embedded scene then the static scene, 300 + 1000 iterations.
+#    embedded scene, then (overhead_skating_384) the embedded scene generated at 384x288 (nearer
+#    the paper's resolutions, where a step is less bound by kernel launches), then the static
+#    scene; 300 + 1000 iterations each.
 # Every step has its own time limit inside the budget and the script goes on after a failure;
 # logs go to $OUT (or output/gpu_check).
 set -u
@@ -21,7 +23,7 @@ BUDGET=${1:-580}
 OUT=${OUT:-output/gpu_check}
 mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1 MAX_JOBS=${MAX_JOBS:-16}
-STEPS=${STEPS:-build_gsplat,cuda_tests,resume_cuda,overhead_skating,overhead_static}
+STEPS=${STEPS:-build_gsplat,cuda_tests,resume_cuda,overhead_skating,overhead_static,overhead_skating_384}
 left() { echo $(( BUDGET - ($(date +%s) - T0) )); }
 step() {  # step NAME RESERVE CMD...: run CMD with the time left minus RESERVE seconds
     local name=$1 reserve=$2; shift 2
@@ -49,7 +51,12 @@ step resume_cuda 150 bash -c "python3 train.py -m /tmp/resume_a --checkpoint_ite
   python3 train.py -m /tmp/resume_b --start_checkpoint /tmp/resume_a/chkpnt_fine_30.pth $RESUME_FLAGS"
 step overhead_skating 90 python3 benchmarks/reflow_overhead.py --scene skating --whole-iterations 1000 --iterations 0 \
     --out /tmp/bench_skating --train-flags "--device cuda --backend gsplat"
+step overhead_skating_384 60 python3 benchmarks/reflow_overhead.py --scene skating --size 384x288 --whole-iterations 1000 \
+    --iterations 0 --out /tmp/bench_skating384 --train-flags "--device cuda --backend gsplat"
 step overhead_static 5 python3 benchmarks/reflow_overhead.py --scene static --whole-iterations 1000 --iterations 0 \
     --out /tmp/bench_static --train-flags "--device cuda --backend gsplat"
+for f in /tmp/bench_*/whole/*/results.json; do  # the runs' own figures (canonical space timing, flow EPE)
+    [ -f "$f" ] && cp "$f" "$OUT/$(basename "$(dirname "$(dirname "$(dirname "$f")")")")_$(basename "$(dirname "$f")")_results.json"
+done
 for f in /tmp/bench_*/whole/*.json; do [ -f "$f" ] && cp "$f" "$OUT/$(basename "$(dirname "$(dirname "$f")")")_$(basename "$f")"; done
 echo "== done at t=$(( $(date +%s) - T0 ))s"

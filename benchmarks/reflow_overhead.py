@@ -1,6 +1,6 @@
 """What ReFlow costs, next to the 4DGS baseline, measured in ONE run: the whole run and one iteration.
 
-    python benchmarks/reflow_overhead.py [--scene skating] [--whole-iterations 2000] [--iterations 30]
+    python benchmarks/reflow_overhead.py [--scene skating] [--size WxH] [--whole-iterations 2000] [--iterations 30]
 
 Whole run (first table): `train.py` for each variant of WHOLE_VARIANTS, back to back in fresh
 processes and fresh folders (nothing cached: the canonical space is built), the same schedule
@@ -64,6 +64,11 @@ WHOLE_VARIANTS = {
     "baseline_batch2": ["--batch_size", "2"],
     "reflow_fe2": ["--plugin", "reflow", "--flow_every", "2"],
     "reflow_no_comp_init": ["--plugin", "reflow", "--disable", "comp_init"],
+    # smaller initial clouds: the one-iteration table shows the per-Gaussian cost near the baseline's,
+    # so the whole run's ratio is mostly the initial count
+    "reflow_static_5k": ["--plugin", "reflow", "--canonical_max_points", "5000"],
+    "reflow_static_5k_seeds_5k": ["--plugin", "reflow", "--canonical_max_points", "5000", "--seed_points", "5000"],
+    "reflow_static_2k": ["--plugin", "reflow", "--canonical_max_points", "2000"],
 }
 WHOLE_PHASES = ("load", "setup", "masks+canonical", "training steps", "partner projection", "flow channels",
                 "flow maps+losses", "dynamic deformation", "densification pass", "test events", "flow evaluation",
@@ -72,12 +77,17 @@ PHASES = ("deform_project", "rasterize", "loss_backward", "densify_step")
 TRAIN_FLAGS: list[str] = []  # --train-flags: added to every variant's train.py flags (e.g. the GPU backend)
 
 
-def scene_path(name: str) -> Path:
+def scene_path(name: str, size: str = "") -> Path:
+    """data/synthetic/NAME (generated if missing); with `size` ("WxH") NAME_WxH at that size."""
     from baselines.synthetic import get_scene, simulate
 
-    path = REPO / "data" / "synthetic" / name
+    path = REPO / "data" / "synthetic" / (f"{name}_{size}" if size else name)
     if not (path / "poses_bounds.npy").is_file():
-        simulate(get_scene(name), path, progress=False)
+        overrides = {}
+        if size:
+            width, height = (int(v) for v in size.lower().split("x"))
+            overrides = {"width": width, "height": height}
+        simulate(get_scene(name, **overrides), path, progress=False)
     return path
 
 
@@ -235,6 +245,8 @@ def print_whole(results: dict, scene: str, coarse: int, fine: int) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", default="skating", help="synthetic scene name (generated if missing)")
+    parser.add_argument("--size", default="", help="WxH: the scene generated at this size (data/synthetic/NAME_WxH); "
+                                                   "default: the scene's own (the embedded scene: 128x96)")
     parser.add_argument("--iterations", type=int, default=30, help="timed iterations per variant")
     parser.add_argument("--warmup", type=int, default=5)
     parser.add_argument("--out", default=str(REPO / "output" / "bench_reflow_overhead"))
@@ -252,7 +264,7 @@ def main() -> None:
     import logging
 
     logging.basicConfig(level=logging.WARNING)
-    scene, out = scene_path(args.scene), Path(args.out)
+    scene, out = scene_path(args.scene, args.size), Path(args.out)
     if args.whole_iterations > 0:
         names = [n for n in args.whole_variants.split(",") if n]
         unknown = [n for n in names if n not in WHOLE_VARIANTS]
@@ -263,7 +275,7 @@ def main() -> None:
             results[name] = whole_run(name, scene, out, args.coarse_iterations, args.whole_iterations)
             print(f"[whole run] {name}: {results[name]['phases']['total'][0]:.1f} s wall, test PSNR "
                   f"{results[name].get('psnr')}", flush=True)
-        print_whole(results, args.scene, args.coarse_iterations, args.whole_iterations)
+        print_whole(results, f"{args.scene} {args.size}".strip(), args.coarse_iterations, args.whole_iterations)
         print()
     if args.iterations <= 0:
         return

@@ -10,7 +10,8 @@ attribute its time. Phases (seconds; nested ones are part of their parent):
     setup                 initial cloud and model (Trainer.build)
       masks+canonical     ReFlow: motion masks, complete canonical space, keyframe seeds (initial_point_cloud)
     training steps        every train_step, of which the host's phases (trainer.timer) and:
-      partner projection  ReFlow pair_mode partner: deforming + projecting the partner frames
+      partner projection  ReFlow pair_mode partner: projecting the partner frames (their deformation
+                          is in the view's call: dynamic deformation)
       flow channels       full-flow channels per Gaussian (flow_features)
       flow maps+losses    flow maps, warps and photometric terms, forward (flow_losses)
       dynamic deformation ReFlow's separated deformation forward (keyframe copies, anchored)
@@ -63,18 +64,20 @@ def instrument() -> None:
     timed(trainer.Trainer, "quick_eval", "test events")
     timed(trainer.Trainer, "save_point_cloud", "test events")
     timed(trainer.Trainer, "_baseline_screen_grads", "densification pass")
-    prepare = trainer.prepare_view
+    from baselines.fourdgs import renderer
 
-    def prepare_view(model, camera, stage, backend="auto", colors=True):
+    prepare = renderer.prepare_view  # prepare_views calls it per camera, with the deformed state
+
+    def prepare_view(model, camera, stage, backend="auto", colors=True, state=None):
         if colors:
-            return prepare(model, camera, stage, backend, colors)
+            return prepare(model, camera, stage, backend, colors, state)
         wall, cpu = time.perf_counter(), time.process_time()
-        view = prepare(model, camera, stage, backend, colors)
+        view = prepare(model, camera, stage, backend, colors, state)
         TIMES["partner projection"][0] += time.perf_counter() - wall
         TIMES["partner projection"][1] += time.process_time() - cpu
         return view
 
-    trainer.prepare_view = prepare_view
+    renderer.prepare_view = prepare_view
     original_init = trainer.Trainer.__init__
 
     def init(self, *args, **kwargs):

@@ -23,6 +23,8 @@ as the test oracle: per-pixel, per-Gaussian blending weights from the reference 
 """
 from __future__ import annotations
 
+import functools
+
 import torch
 from torch import Tensor
 
@@ -36,9 +38,15 @@ FLOW_CHANNELS = 7  # A (4) + c (2) + validity (1)
 
 
 def pixel_grid(height: int, width: int, like: Tensor) -> Tensor:
-    """[H, W, 2] pixel-centre coordinates (x, y) on `like`'s device and dtype."""
-    ys = torch.arange(height, device=like.device, dtype=like.dtype) + 0.5
-    xs = torch.arange(width, device=like.device, dtype=like.dtype) + 0.5
+    """[H, W, 2] pixel-centre coordinates (x, y) on `like`'s device and dtype (cached: read-only)."""
+    return _pixel_grid(int(height), int(width), like.device, like.dtype)
+
+
+@functools.lru_cache(maxsize=16)
+def _pixel_grid(height: int, width: int, device: torch.device, dtype: torch.dtype) -> Tensor:
+    # built once per size: a training step asks for it in every flow map and warp
+    ys = torch.arange(height, device=device, dtype=dtype) + 0.5
+    xs = torch.arange(width, device=device, dtype=dtype) + 0.5
     grid_y, grid_x = torch.meshgrid(ys, xs, indexing="ij")
     return torch.stack((grid_x, grid_y), dim=-1)
 
@@ -90,23 +98,18 @@ def flow_features(proj_a: Projection, proj_b: Projection, near: float = NEAR) ->
     cov_b = torch.where(valid[:, None, None], proj_b.cov2d, torch.eye(2, dtype=proj_b.cov2d.dtype,
                                                                       device=proj_b.cov2d.device))
     conic_a = torch.where(valid[:, None], proj_a.conics, proj_a.conics.new_tensor([1.0, 0.0, 1.0]))
-    ma = torch.where(valid[:, None], proj_a.means2d, torch.zeros_like(proj_a.means2d))
-    mb = torch.where(valid[:, None], proj_b.means2d, torch.zeros_like(proj_b.means2d))
-    # sqrt(S_b)
-    sb_a, sb_b, sb_c = sqrtm_spd2(cov_b[:, 0, 0], cov_b[:, 0, 1], cov_b[:, 1, 1])
-    # sqrt(S_a)^-1 = sqrt(S_a^-1); the conic is (a, b, c) of S_a^-1
-    ia_a, ia_b, ia_c = sqrtm_spd2(conic_a[:, 0], conic_a[:, 1], conic_a[:, 2])
-    a00 = sb_a * ia_a + sb_b * ia_b
-    a01 = sb_a * ia_b + sb_b * ia_c
-    a10 = sb_b * ia_a + sb_c * ia_b
-    a11 = sb_b * ia_b + sb_c * ia_c
-    cx = mb[:, 0] - (a00 * ma[:, 0] + a01 * ma[:, 1])
-    cy = mb[:, 1] - (a10 * ma[:, 0] + a11 * ma[:, 1])
-    one, zero = torch.ones_like(a00), torch.zeros_like(a00)
-    a00, a11 = torch.where(valid, a00, one), torch.where(valid, a11, one)
-    a01, a10 = torch.where(valid, a01, zero), torch.where(valid, a10, zero)
-    cx, cy = torch.where(valid, cx, zero), torch.where(valid, cy, zero)
-    return torch.stack((a00, a01, a10, a11, cx, cy, valid.to(a00.dtype)), dim=1)
+    # sqrt(S_b) and sqrt(S_a)^-1 = sqrt(S_a^-1) (the conic is (a, b, c) of S_a^-1), in one call on [2, N]
+    # (a step is bound by the number of small kernels on a GPU, not by their size)
+    r_a, r_b, r_c = sqrtm_spd2(torch.stack((cov_b[:, 0, 0], conic_a[:, 0])), torch.stack((cov_b[:, 0, 1], conic_a[:, 1])),
+                               torch.stack((cov_b[:, 1, 1], conic_a[:, 2])))
+    roots = torch.stack((r_a, r_b, r_b, r_c), dim=-1).reshape(2, -1, 2, 2)  # symmetric [2, N, 2, 2]
+    A = roots[0] @ roots[1]  # [N, 2, 2] = sqrt(S_b) sqrt(S_a)^-1
+    means = torch.where(valid[:, None, None], torch.stack((proj_a.means2d, proj_b.means2d), dim=1),
+                        torch.zeros((), dtype=proj_a.means2d.dtype, device=proj_a.means2d.device))  # [N, 2 (a, b), 2]
+    c = means[:, 1] - (A @ means[:, 0].unsqueeze(-1)).squeeze(-1)  # m_b - A m_a
+    identity = A.new_tensor([1.0, 0.0, 0.0, 1.0, 0.0, 0.0])
+    channels = torch.where(valid[:, None], torch.cat((A.reshape(-1, 4), c), dim=1), identity)
+    return torch.cat((channels, valid.to(channels.dtype).unsqueeze(1)), dim=1)
 
 
 def full_flow(maps: Tensor, alpha: Tensor, min_alpha: float = 0.5) -> tuple[Tensor, Tensor]:

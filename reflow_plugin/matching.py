@@ -206,9 +206,14 @@ def flow_losses(pairs: list[FlowPair], config: MatchingConfig, use_full: list[bo
         # warp ground truth and render together
         sources = torch.cat((pair.target.image, pair.target_render), dim=-1) if with_render else pair.target.image
         direction = Direction()
+        blur_sigmas = config.blur_sigmas if use_full[k] and blurred is not None else ()
+        blurred_pairs = [blurred(k, sigma) for sigma in blur_sigmas]  # (blurred I_b, blurred I_a)
         if use_full[k]:
             flow, valid = full_flows[k]
-            warped, inside = backward_warp(sources, flow)
+            # I_b (and render_b) and the blurred I_b share the flow: one sampling call for all
+            stacked = torch.cat((sources, *[b for b, _ in blurred_pairs]), dim=-1) if blurred_pairs else sources
+            warped_all, inside = backward_warp(stacked, flow)
+            warped = warped_all[..., :sources.shape[-1]]
             mask = valid & inside
             reverse = full_flows[pair.reverse] if pair.reverse is not None else None
             if config.occlusion and reverse is not None:
@@ -222,11 +227,13 @@ def flow_losses(pairs: list[FlowPair], config: MatchingConfig, use_full: list[bo
             terms.add("mc", warped[..., :3], gt_a, mask, weight)
             if with_render:
                 terms.add("cr", warped[..., 3:], gt_a, mask, weight)
-            if blurred is not None and config.blur_sigmas:
+            if blurred_pairs:
                 blur_mask = mask & ~_static_pixels(a) if config.blur_dynamic_only else mask
-                for sigma in config.blur_sigmas:
-                    blur_b, blur_a = blurred(k, sigma)
-                    terms.add("mc", backward_warp(blur_b, flow)[0], blur_a, blur_mask, weight)
+                start = sources.shape[-1]
+                for blur_b, blur_a in blurred_pairs:
+                    width = blur_b.shape[-1]
+                    terms.add("mc", warped_all[..., start:start + width], blur_a, blur_mask, weight)
+                    start += width
             direction.flow, direction.valid, direction.warped = flow, mask, warped[..., :3]
             result.metrics[f"flow_valid_{k}"] = float(mask.float().mean())
         if use_cam[k]:

@@ -111,6 +111,7 @@ class ReFlowPlugin(Plugin):
             cam_target_static=self.p.cam_flow_target_static, blur_dynamic_only=self.p.flow_blur_region == "dynamic")
         self._blur_cache: dict[tuple[str, float], Tensor] = {}
         self._camera_motion: dict[tuple[int, int], float] = {}
+        self._any_dynamic: tuple[Tensor, bool] | None = None  # (labels tensor, any dynamic): _has_dynamic
         self._partner_cameras: list = []  # pair_mode partner: per batch view, its frame b (or None)
         self._partners_projected = False
         self._run_dir_path = Path(".")
@@ -141,7 +142,11 @@ class ReFlowPlugin(Plugin):
         dynamic Gaussian (a static scene) there are no full-flow terms; camera flow covers it."""
         if not (self.is_enabled("separation") and self.is_enabled("cam_flow")):
             return True
-        return bool(self._dynamic(ctx).any())
+        table = self._dynamic(ctx)
+        # asked several times per step; the model replaces (never edits) its table when labels change
+        if self._any_dynamic is None or self._any_dynamic[0] is not table:
+            self._any_dynamic = (table, bool(table.any()))
+        return self._any_dynamic[1]
 
     def _cam_between(self, a, b) -> bool:
         """Camera flow a -> b is computed (the cameras move enough for it to say anything)."""

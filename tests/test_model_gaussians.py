@@ -131,6 +131,40 @@ def test_times_outside_the_span_extrapolate_hold_or_move_on_linearly():
             model.set_time_span(bad)
 
 
+def _assert_states_close(got, expected) -> None:
+    for field in ("means", "log_scales", "rotations", "opacity_logits", "shs"):
+        torch.testing.assert_close(getattr(got, field), getattr(expected, field), atol=1e-5, rtol=1e-5)
+
+
+def test_deform_many_equals_one_deform_per_time_values_and_gradients():
+    """One deformation call for several times gives each time's Gaussians and the same gradients."""
+    times = (0.2, 0.9, 0.2)
+    model = model_with_time_dependent_planes()
+    model.training_setup(opt_args())
+    many = model.deform_many(times, "fine")
+    one_by_one = [model.deform(t, "fine") for t in times]
+    assert len(many) == 3 and all(s.num_gaussians == model.num_gaussians for s in many)
+    for got, expected in zip(many, one_by_one):
+        _assert_states_close(got, expected)
+    assert not torch.allclose(many[0].means, many[1].means)  # the times really differ
+
+    def grads(states) -> list[torch.Tensor]:
+        loss = sum((k + 1) * (s.means.square().sum() + s.log_scales.sum()) for k, s in enumerate(states))
+        params = [model._xyz, *model.deformation.get_mlp_parameters()]
+        return torch.autograd.grad(loss, params, allow_unused=True)
+
+    for got, expected in zip(grads(model.deform_many(times, "fine")), grads([model.deform(t, "fine") for t in times])):
+        if expected is None:
+            assert got is None
+        else:
+            torch.testing.assert_close(got, expected, atol=1e-4, rtol=1e-4)
+    # coarse, one time, or a time outside the span: deform's own path (clamping, extrapolation)
+    assert model.deform_many([0.5, 0.6], "coarse")[0].means is model._xyz
+    model.set_time_span((0.1, 0.8), "linear")
+    for got, t in zip(model.deform_many([0.0, 0.5], "fine"), (0.0, 0.5)):
+        _assert_states_close(got, model.deform(t, "fine"))
+
+
 def test_deform_passes_registered_buffers_to_the_module():
     seen = {}
 

@@ -15,7 +15,7 @@ import torch
 from baselines.fourdgs.gaussian_model import GaussianModel
 from baselines.render import composite, project_gaussians
 from reflow_plugin.flow import flow_features, full_flow
-from reflow_plugin.separation import TIME_CENTER, SeparatedDeformation
+from reflow_plugin.separation import TIME_CENTER, TIME_LOG_SCALE, SeparatedDeformation
 from reflow_plugin.warp import backward_warp, gaussian_blur, photometric_loss
 from tests._model_helpers import hidden_args, opt_args
 from tests.raster_cases import intrinsics
@@ -151,3 +151,28 @@ def test_anchor_is_what_keeps_seeds_at_their_keyframe():
         assert (offset < 1e-6) == anchored, (anchored, float(offset))
         assert (elsewhere - model.get_xyz).norm(dim=1).max() > 1e-3
     assert np.isfinite(float(offset.detach()))
+
+
+def test_deform_many_keeps_keyframe_windows_and_anchors_of_every_time():
+    """The separated model deformed at a view's and a partner's time in ONE call (the trainer's
+    prepare_views) equals two calls: per-row times, temporal windows, anchors, culling, labels."""
+    model = _anchored_carpet_model(anchored=True)
+    model.deformation.window_cull = 1e-3
+    n = model.num_gaussians
+    with torch.no_grad():
+        for p in model.deformation.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+        model.pop_gaussian_buffer(TIME_CENTER)
+        model.register_gaussian_buffer(TIME_CENTER, torch.linspace(-0.5, 0.5, n).unsqueeze(1))
+    model.register_gaussian_buffer(TIME_LOG_SCALE, torch.full((n, 1), math.log(0.1)))
+    table = torch.ones(n, dtype=torch.bool)
+    table[::3] = False  # a third static
+    model.set_deformation_table(table)
+    times = (-0.4, 0.3)
+    many = model.deform_many(times, "fine")
+    for got, t in zip(many, times):
+        expected = model.deform(t, "fine")
+        for field in ("means", "log_scales", "rotations", "opacity_logits"):
+            torch.testing.assert_close(getattr(got, field), getattr(expected, field), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(many[0].means[~table], model.get_xyz[~table])  # static rows untouched
+    assert (many[0].opacity_logits != many[1].opacity_logits).any()  # windows depend on the time

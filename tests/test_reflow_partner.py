@@ -51,7 +51,15 @@ def test_partner_step_renders_one_view_and_moves_the_partners_gaussians(partner_
     trainer, ctx = partner_run, partner_run.ctx
     plugin = trainer.hooks.plugins[0]
     assert plugin.select_batch(ctx) is None  # the host's own single-view sampling, as the baseline's
-    views, partners = _step_capturing(trainer)
+    module, calls = ctx.model.deformation, []
+    module.forward = lambda *args, **kwargs: calls.append(args[0].num_gaussians) or type(module).forward(
+        module, *args, **kwargs)
+    try:
+        views, partners = _step_capturing(trainer)
+    finally:
+        del module.forward
+    # the view and its partner frame are deformed in ONE call on the rows repeated (prepare_views)
+    assert calls == [2 * ctx.model.num_gaussians], calls
     assert len(views) == 1 and len(partners) == 1  # one composited view, one projected partner
     a, b = views[0].camera, partners[0].camera
     order = plugin.sampler.position

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from types import MappingProxyType
 from typing import Any
 
@@ -549,6 +549,29 @@ class GaussianModel:
             before = self._deformation(state, mirrored, inputs).means
             out = out.replace(means=2.0 * out.means - before)
         return out
+
+    def deform_many(self, times: Sequence[float], stage: str) -> list[GaussianState]:
+        """The Gaussians at each of `times` (scalars), equal to ``[deform(t, stage) for t in times]``.
+
+        Several times inside the training span go through the deformation module in ONE call on
+        the state repeated once per time (rows [k N, (k + 1) N) at times[k]): the per-call work of
+        a HexPlane field and its MLP (hundreds of small kernels on a GPU) is paid once for a
+        view and its partner frame. A time outside the span (its clamping and extrapolation) or a
+        single time takes ``deform``'s path.
+        """
+        times = [float(t) for t in times]
+        span = self.time_span
+        outside = span is not None and self.time_outside != "extrapolate" and not all(
+            span[0] <= t <= span[1] for t in times)
+        if stage != "fine" or len(times) < 2 or outside:
+            return [self.deform(t, stage) for t in times]
+        state, count = self.canonical_state(), self.num_gaussians
+        repeated = GaussianState.cat([state] * len(times))
+        column = torch.tensor(times, device=self.device, dtype=self._xyz.dtype).repeat_interleave(count).unsqueeze(1)
+        # per-Gaussian inputs (registered buffers, deformation_table) follow the repeated rows
+        inputs = {name: torch.cat([value] * len(times)) for name, value in self.deformation_inputs().items()}
+        out = self._deformation(repeated, column, inputs)
+        return [out.index(slice(k * count, (k + 1) * count)) for k in range(len(times))]
 
     @property
     def deformation_table(self) -> Tensor:

@@ -1,13 +1,14 @@
 """Rendering of the (deformed) Gaussian model into one camera, in two steps.
 
 `prepare_view` deforms the Gaussians to the camera's time, computes their view-dependent colours
-and projects them; `composite_view` rasterizes colours plus any extra per-Gaussian channels in ONE
+and projects them (`prepare_views` does it for several cameras with ONE deformation call); `composite_view` rasterizes colours plus any extra per-Gaussian channels in ONE
 pass. The split lets the trainer prepare every view of a batch first, so a plugin can build a
 view's extra channels from another view's projection (flow between a frame pair) at no extra
 rasterization cost. `render` does both for evaluation.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import torch
@@ -22,20 +23,23 @@ if TYPE_CHECKING:
     from baselines.data import Camera
 
     from .gaussian_model import GaussianModel
+    from .state import GaussianState
 
 
 def prepare_view(model: GaussianModel, camera: Camera, stage: str, backend: str = "auto",
-                 colors: bool = True) -> ViewRender:
+                 colors: bool = True, state: GaussianState | None = None) -> ViewRender:
     """Deform to camera.time, evaluate SH colours and project (no compositing yet).
 
     Args:
         colors: False for a view that is only projected, never composited (a plugin's partner
             frame): its `colors` stay None.
+        state: the Gaussians already deformed to camera.time (`prepare_views`), else deformed here.
     Returns:
         ViewRender with state, colors [N, 3] and projection filled in; means2d retains its grad
         (densification statistics read it after backward).
     """
-    state = model.deform(camera.time, stage)
+    if state is None:
+        state = model.deform(camera.time, stage)
     rgb = sh_to_rgb(state.shs, state.means, camera.camera_center, model.active_sh_degree) if colors else None
     projection = project_gaussians(
         state.means, state.quats, state.scales, camera.viewmat, camera.K, camera.width, camera.height,
@@ -44,6 +48,18 @@ def prepare_view(model: GaussianModel, camera: Camera, stage: str, backend: str 
     if projection.means2d.requires_grad:
         projection.means2d.retain_grad()
     return ViewRender(camera=camera, state=state, colors=rgb, projection=projection)
+
+
+def prepare_views(model: GaussianModel, cameras: Sequence[Camera], stage: str, backend: str = "auto",
+                  colors: Sequence[bool] | None = None) -> list[ViewRender]:
+    """`prepare_view` of every camera, the deformation to all their times in one call
+    (`GaussianModel.deform_many`); `colors[k]` as prepare_view's `colors` (default all True)."""
+    colors = [True] * len(cameras) if colors is None else list(colors)
+    if len(colors) != len(cameras):
+        raise ValueError(f"prepare_views: {len(colors)} colour flags for {len(cameras)} cameras")
+    states = model.deform_many([camera.time for camera in cameras], stage)
+    return [prepare_view(model, camera, stage, backend, flag, state)
+            for camera, flag, state in zip(cameras, colors, states)]
 
 
 def composite_view(

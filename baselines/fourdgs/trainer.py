@@ -43,7 +43,7 @@ from .gaussian_model import GaussianModel
 from .hooks import HookRunner, TrainContext
 from .interrupt import StopFlag, deferred_interrupt
 from .plugins import Plugin
-from .renderer import composite_view, prepare_view, render
+from .renderer import composite_view, prepare_views, render
 from baselines.run_folder import (RunFolder, RunIdentity, TrainingInterrupted, check_resume_identity,
                                   check_upgrade_plugins)
 from .run_log import RunLog, StageTimer
@@ -247,8 +247,10 @@ class Trainer:
         ctx.losses, ctx.metrics, ctx.densify_record = {}, {}, None
 
         with self.timer("deform_project"):
-            ctx.views = [prepare_view(model, cam, ctx.stage, self.pipe.backend) for cam in ctx.batch]
-            ctx.partners = [prepare_view(model, cam, ctx.stage, self.pipe.backend, colors=False) for cam in partners]
+            # one deformation call for the batch and the partner frames (prepare_views)
+            prepared = prepare_views(model, [*ctx.batch, *partners], ctx.stage, self.pipe.backend,
+                                     [True] * len(ctx.batch) + [False] * len(partners))
+            ctx.views, ctx.partners = prepared[:len(ctx.batch)], prepared[len(ctx.batch):]
         with self.timer("rasterize"):
             for k, view in enumerate(ctx.views):
                 extra = self.hooks.merged("extra_features", ctx, k, prefix=False)
