@@ -54,6 +54,9 @@ METHODS = {
     "reflow": ["--plugin", "reflow"],
     # diagnosis (not run by default): the canonical space from triangulated optical flow instead of disp/
     "reflow_flow_provider": ["--plugin", "reflow", "--canonical_provider", "flow"],
+    # the estimated masks' pairing with the frames 1-4 apart (before: 1-2)
+    "reflow_masks8": ["--plugin", "reflow", "--mask_offsets", "-4", "-3", "-2", "-1", "1", "2", "3", "4"],
+    "reflow_masks4": ["--plugin", "reflow", "--mask_offsets", "-2", "-1", "1", "2"],
 }
 DEFAULT_METHODS = ("baseline", "reflow")
 DONE_FILE = "real_done.json"

@@ -57,6 +57,8 @@ METHODS = {
     "reflow_capped": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow", "--no-dynamic_scale_free"],
     # static Gaussians promoted where the coarse fit leaves unmasked pixels unexplained (estimated masks only)
     "reflow_promote": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow", "--promote_residual", "3"],
+    "reflow_masks8": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow",
+                      "--mask_offsets", "-4", "-3", "-2", "-1", "1", "2", "3", "4"],
 }
 SCHEDULES = {
     "full": [],

@@ -31,13 +31,14 @@ import cv2
 import numpy as np
 
 from baselines.data import Camera
-from baselines.data.motion_masks import estimate_motion_masks
+from baselines.data.motion_masks import MotionMaskOptions, estimate_motion_masks
 
 from .disparity import MIN_POINTS, fit_frames, project  # noqa: F401 (project: re-exported)
 
 log = logging.getLogger(__name__)
 EMPTY_DATASET_MASKS = "dataset (every mask empty: no moving pixel)"  # results.json["reflow"]["mask_source"]
 CACHE_VERSION = 1
+DEFAULT_OFFSETS = MotionMaskOptions().offsets  # (-2, -1, 1, 2)
 
 
 class LabelError(ValueError):
@@ -55,8 +56,10 @@ def dataset_masks(cameras: Sequence[Camera]) -> list[np.ndarray] | None:
     return [c.mask.detach().cpu().numpy() > 0.5 for c in cameras]
 
 
-def _cache_key(cameras: Sequence[Camera], with_depth: bool) -> str:
-    h = hashlib.sha256(f"v{CACHE_VERSION}|depth={with_depth}".encode())
+def _cache_key(cameras: Sequence[Camera], with_depth: bool, offsets: Sequence[int] = DEFAULT_OFFSETS) -> str:
+    # the default offsets leave the key as it was (masks cached by earlier runs stay valid)
+    extra = "" if tuple(offsets) == DEFAULT_OFFSETS else f"|offsets={','.join(map(str, offsets))}"
+    h = hashlib.sha256(f"v{CACHE_VERSION}|depth={with_depth}{extra}".encode())
     for cam in cameras:
         h.update(f"{cam.image_name}|{cam.width}x{cam.height}|".encode())
         h.update(np.ascontiguousarray(_np(cam.viewmat)).tobytes())
@@ -65,10 +68,12 @@ def _cache_key(cameras: Sequence[Camera], with_depth: bool) -> str:
 
 
 def estimated_masks(cameras: Sequence[Camera], cache_dir: Path | None,
-                    depths: Sequence[np.ndarray] | None = None) -> list[np.ndarray]:
-    """Masks from flow vs cameras (sorted by time for the pairing), cached under `cache_dir`."""
+                    depths: Sequence[np.ndarray] | None = None,
+                    offsets: Sequence[int] = DEFAULT_OFFSETS) -> list[np.ndarray]:
+    """Masks from flow vs cameras (sorted by time for the pairing; each frame tested against the
+    frames `offsets` away in that order), cached under `cache_dir`."""
     order = sorted(range(len(cameras)), key=lambda i: (cameras[i].time, cameras[i].frame_index))
-    key = _cache_key(cameras, depths is not None)
+    key = _cache_key(cameras, depths is not None, offsets)
     folder = None if cache_dir is None else Path(cache_dir) / "motion_masks"
     if folder is not None and (folder / "key.json").is_file():
         try:
@@ -84,7 +89,8 @@ def estimated_masks(cameras: Sequence[Camera], cache_dir: Path | None,
     Ks = [_np(cameras[i].K) for i in order]
     viewmats = [_np(cameras[i].viewmat) for i in order]
     ordered_depths = None if depths is None else [depths[i] for i in order]
-    ordered, report = estimate_motion_masks(images, Ks, viewmats, ordered_depths)
+    ordered, report = estimate_motion_masks(images, Ks, viewmats, ordered_depths,
+                                            MotionMaskOptions(offsets=tuple(int(o) for o in offsets)))
     masks: list[np.ndarray] = [None] * len(cameras)  # type: ignore[list-item]
     for rank, index in enumerate(order):
         masks[index] = ordered[rank]
@@ -101,8 +107,10 @@ def estimated_masks(cameras: Sequence[Camera], cache_dir: Path | None,
 
 
 def training_masks(cameras: Sequence[Camera], source: str, cache_dir: Path | None,
-                   depths: Sequence[np.ndarray] | None = None) -> tuple[list[np.ndarray] | None, str]:
-    """(masks or None, where they came from) for `source` in auto | masks | estimate | none."""
+                   depths: Sequence[np.ndarray] | None = None,
+                   offsets: Sequence[int] = DEFAULT_OFFSETS) -> tuple[list[np.ndarray] | None, str]:
+    """(masks or None, where they came from) for `source` in auto | masks | estimate | none;
+    `offsets`: the estimate's frame pairing (`estimated_masks`)."""
     if source == "none":
         return None, "none"
     from_dataset = dataset_masks(cameras)
@@ -120,7 +128,7 @@ def training_masks(cameras: Sequence[Camera], source: str, cache_dir: Path | Non
         return from_dataset, "dataset"
     if len(cameras) < 2:
         return None, "none (a single view has no flow to test)"
-    return estimated_masks(cameras, cache_dir, depths), "estimated"
+    return estimated_masks(cameras, cache_dir, depths, offsets), "estimated"
 
 
 def aligned_depths(cameras: Sequence[Camera], static_points: np.ndarray,

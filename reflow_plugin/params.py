@@ -39,6 +39,13 @@ def _sigmas(value: list[float]) -> str | None:
     return f"blur sigmas must be > 0, got {bad}" if bad else None
 
 
+def _nonzero_ints(value: list[int]) -> str | None:
+    bad = [o for o in value if not isinstance(o, int) or isinstance(o, bool) or o == 0]
+    if bad or not value:
+        return f"must be a non-empty list of non-zero integers, got {value}"
+    return None
+
+
 @dataclass
 class ReFlowParams:
     """Weights, schedule and options of ReFlow (paper sections 3.2-3.4, appendix A)."""
@@ -145,6 +152,11 @@ class ReFlowParams:
     label_source: str = param("auto", "where static/dynamic labels come from: auto (canonical init, else the "
                                       "dataset's motion masks, else estimated masks), masks, estimate, none",
                               choices=LABEL_SOURCES)
+    mask_offsets: list[int] = param([-2, -1, 1, 2], "estimated motion masks: each training frame is tested "
+                                                    "against the frames this many places away in time order "
+                                                    "(the per-pixel median over the pairs is thresholded; "
+                                                    "wider offsets see slow motion, e.g. an object turning "
+                                                    "in place)", check=_nonzero_ints)
     label_vote: float = param(0.5, "an initial point is dynamic when it lies inside the motion mask in at "
                                    "least this fraction of the training views that see it", check=_fraction)
     promote_residual: float = param(0.0, "ours, optional: with ESTIMATED masks, at the start of the fine stage "

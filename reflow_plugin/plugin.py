@@ -215,7 +215,7 @@ class ReFlowPlugin(Plugin):
         cameras = ctx.train_cameras
         host = ctx.point_cloud
         masks, source = training_masks(cameras, self.p.label_source, self._run_dir(ctx),
-                                       aligned_depths(cameras, host.points))
+                                       aligned_depths(cameras, host.points), self.p.mask_offsets)
         self.masks, self.info["mask_source"] = masks, source
         if masks is not None:
             self.mask_tensors = {c.uid: torch.from_numpy(m).to(ctx.device) for c, m in zip(cameras, masks)}

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -149,3 +150,33 @@ def test_degenerate_inputs():
     opts = MotionMaskOptions(offsets=(1,))
     masks, report = estimate_motion_masks([image, image], [np.eye(3)] * 2, [np.eye(4)] * 2, options=opts)
     assert not any(m.any() for m in masks)
+
+
+def test_mask_offsets_reach_the_estimate_and_its_cache_key(balloon, tmp_path, monkeypatch):
+    """ReFlow's --mask_offsets pairs each frame with those neighbours, and masks cached under one
+    pairing are never read back for another."""
+    import torch
+
+    from baselines.data import motion_masks
+    from reflow_plugin import labels
+
+    images, Ks, viewmats, _, depths = _load(balloon, 8)
+    cameras = [SimpleNamespace(image=torch.from_numpy(im.astype(np.float32) / 255), K=torch.from_numpy(K),
+                               viewmat=torch.from_numpy(v), time=k / 7, frame_index=k, image_name=f"{k:03d}",
+                               width=96, height=72) for k, (im, K, v) in enumerate(zip(images, Ks, viewmats))]
+    seen = []
+    real = motion_masks.estimate_motion_masks
+
+    def spy(*args, **kwargs):
+        masks, report = real(*args, **kwargs)
+        seen.append(report.pairs)
+        return masks, report
+
+    monkeypatch.setattr(labels, "estimate_motion_masks", spy)
+    wide = labels.estimated_masks(cameras, tmp_path, depths, offsets=(-4, 4))
+    assert seen[-1][0] == [4] and seen[-1][5] == [1]  # frame 0 pairs with 4 only; frame 5 with 1 (9 is past the end)
+    default = labels.estimated_masks(cameras, tmp_path, depths)
+    assert len(seen) == 2 and seen[-1][3] == [1, 2, 4, 5]  # computed again, not read from the (-4, 4) cache
+    assert any((w != d).any() for w, d in zip(wide, default))
+    labels.estimated_masks(cameras, tmp_path, depths)
+    assert len(seen) == 2  # the same pairing is read from the cache

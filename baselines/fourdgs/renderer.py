@@ -1,10 +1,11 @@
 """Rendering of the (deformed) Gaussian model into one camera, in two steps.
 
 `prepare_view` deforms the Gaussians to the camera's time, computes their view-dependent colours
-and projects them (`prepare_views` does it for several cameras with ONE deformation call); `composite_view` rasterizes colours plus any extra per-Gaussian channels in ONE
-pass. The split lets the trainer prepare every view of a batch first, so a plugin can build a
-view's extra channels from another view's projection (flow between a frame pair) at no extra
-rasterization cost. `render` does both for evaluation.
+and projects them (`prepare_views`: several cameras, ONE deformation call); `composite_view`
+rasterizes colours plus any extra per-Gaussian channels in ONE pass. The split lets the trainer
+prepare every view of a batch first, so a plugin can build a view's extra channels from another
+view's projection (flow between a frame pair) at no extra rasterization cost. `render` does both
+for evaluation.
 """
 from __future__ import annotations
 
