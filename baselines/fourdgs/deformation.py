@@ -82,8 +82,10 @@ class DeformationModule(Protocol):
     ``forward(state, times [N,1], buffers) -> GaussianState`` maps canonical pre-activation
     Gaussians to time ``times``; ``buffers`` holds the model's registered per-Gaussian buffers
     and parameters and its ``deformation_table`` ([N] bool), rows aligned with ``state``
-    (``GaussianModel.deformation_inputs``). 4DGS's network deforms every row. Optimizer groups "deformation" and "grid" are
-    built from ``get_mlp_parameters()`` and ``get_grid_parameters()``.
+    (``GaussianModel.deformation_inputs``). 4DGS's network deforms every row. Rows must be deformed
+    independently of each other: ``GaussianModel.deform_many`` stacks the state once per time and
+    makes one call. Optimizer groups "deformation" and "grid" are built from
+    ``get_mlp_parameters()`` and ``get_grid_parameters()``.
     """
 
     def __call__(
