@@ -102,13 +102,18 @@ def flow_features(proj_a: Projection, proj_b: Projection, near: float = NEAR) ->
     # (a step is bound by the number of small kernels on a GPU, not by their size)
     r_a, r_b, r_c = sqrtm_spd2(torch.stack((cov_b[:, 0, 0], conic_a[:, 0])), torch.stack((cov_b[:, 0, 1], conic_a[:, 1])),
                                torch.stack((cov_b[:, 1, 1], conic_a[:, 2])))
-    roots = torch.stack((r_a, r_b, r_b, r_c), dim=-1).reshape(2, -1, 2, 2)  # symmetric [2, N, 2, 2]
-    A = roots[0] @ roots[1]  # [N, 2, 2] = sqrt(S_b) sqrt(S_a)^-1
-    means = torch.where(valid[:, None, None], torch.stack((proj_a.means2d, proj_b.means2d), dim=1),
-                        torch.zeros((), dtype=proj_a.means2d.dtype, device=proj_a.means2d.device))  # [N, 2 (a, b), 2]
-    c = means[:, 1] - (A @ means[:, 0].unsqueeze(-1)).squeeze(-1)  # m_b - A m_a
+    # A = sqrt(S_b) sqrt(S_a)^-1 and c = m_b - A m_a written out per entry (a batched 2x2 matmul is
+    # slower on a CPU); invalid rows' means are zeroed before they enter
+    (sb_a, ia_a), (sb_b, ia_b), (sb_c, ia_c) = r_a.unbind(0), r_b.unbind(0), r_c.unbind(0)
+    zero = torch.zeros((), dtype=proj_a.means2d.dtype, device=proj_a.means2d.device)
+    ma = torch.where(valid[:, None], proj_a.means2d, zero)
+    mb = torch.where(valid[:, None], proj_b.means2d, zero)
+    a00, a01 = sb_a * ia_a + sb_b * ia_b, sb_a * ia_b + sb_b * ia_c
+    a10, a11 = sb_b * ia_a + sb_c * ia_b, sb_b * ia_b + sb_c * ia_c
+    A = torch.stack((a00, a01, a10, a11), dim=1)  # [N, 4]
+    c = mb - torch.stack((a00 * ma[:, 0] + a01 * ma[:, 1], a10 * ma[:, 0] + a11 * ma[:, 1]), dim=1)
     identity = A.new_tensor([1.0, 0.0, 0.0, 1.0, 0.0, 0.0])
-    channels = torch.where(valid[:, None], torch.cat((A.reshape(-1, 4), c), dim=1), identity)
+    channels = torch.where(valid[:, None], torch.cat((A, c), dim=1), identity)
     return torch.cat((channels, valid.to(channels.dtype).unsqueeze(1)), dim=1)
 
 
