@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from baselines.data import load_scene
 from baselines.data.triangulation import triangulate_static_points
@@ -121,6 +122,16 @@ def test_frames_without_sparse_points_fall_back_to_bounds_then_neighbours(loaded
     # a frame whose fit would put its pixels behind the camera is not used as is
     fit = FrameFit(1.0, -np.median(disparities[0]), "sparse")
     assert np.isnan(fit.depth(disparities[0])).mean() > 0.3
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks that a CPU-only machine is never asked for CUDA")
+def test_anchored_alignment_runs_on_the_cpu_whatever_the_training_device(loaded, anchors):
+    """The inverse-depth refinement is launch-bound on a GPU (7.0 s on an H200 vs 2.0 s on one CPU
+    thread), so it runs on the CPU: asked for "cuda" on a machine without one, it still works."""
+    masks = [c.evaluation_mask.numpy() > 0.5 for c in loaded.train_cameras]
+    space = build_canonical_space(loaded, masks, CanonicalOptions(cache=False, max_side=32, device="cuda"),
+                                  anchors=anchors)
+    assert space.report["alignment"]["mode"] == "inverse depth (anchored)" and len(space.static.points) > 0
 
 
 def test_static_cloud_at_the_true_depth_and_dynamic_not_collapsed(loaded, anchors, tmp_path):
