@@ -44,11 +44,14 @@ def pixel_grid(height: int, width: int, like: Tensor) -> Tensor:
 
 @functools.lru_cache(maxsize=16)
 def _pixel_grid(height: int, width: int, device: torch.device, dtype: torch.dtype) -> Tensor:
-    # built once per size: a training step asks for it in every flow map and warp
-    ys = torch.arange(height, device=device, dtype=dtype) + 0.5
-    xs = torch.arange(width, device=device, dtype=dtype) + 0.5
-    grid_y, grid_x = torch.meshgrid(ys, xs, indexing="ij")
-    return torch.stack((grid_x, grid_y), dim=-1)
+    # built once per size: a training step asks for it in every flow map and warp. Never as an
+    # inference tensor (a first call under torch.inference_mode would cache one, and autograd cannot
+    # save it for backward later)
+    with torch.inference_mode(False):
+        ys = torch.arange(height, device=device, dtype=dtype) + 0.5
+        xs = torch.arange(width, device=device, dtype=dtype) + 0.5
+        grid_y, grid_x = torch.meshgrid(ys, xs, indexing="ij")
+        return torch.stack((grid_x, grid_y), dim=-1)
 
 
 def sqrtm_spd2(a: Tensor, b: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:

@@ -293,3 +293,19 @@ def test_flow_channels_stay_finite_for_a_gaussian_blown_up_in_view_b():
                          cov_b[0, 1, 1].detach().double())
     root = torch.stack([a, b, b, c]).reshape(2, 2)
     torch.testing.assert_close(root @ root, cov_b[0].detach().double(), rtol=1e-6, atol=1e13)
+
+
+def test_cached_pixel_grid_made_under_inference_mode_still_trains():
+    """The pixel grid is cached per size; a first call under torch.inference_mode (an evaluation
+    script) must not cache a tensor that autograd later refuses to save."""
+    from reflow_plugin.flow import _pixel_grid, full_flow, pixel_grid
+
+    _pixel_grid.cache_clear()
+    with torch.inference_mode():
+        pixel_grid(5, 7, torch.zeros(1))
+    maps = torch.zeros(5, 7, 7)
+    maps[..., 0] = maps[..., 3] = maps[..., 6] = 1.0
+    maps.requires_grad_(True)
+    flow, valid = full_flow(maps, torch.ones(5, 7, 1))
+    flow.sum().backward()
+    assert valid.all() and maps.grad is not None and torch.isfinite(maps.grad).all()
