@@ -24,7 +24,8 @@ the raw cloud fails the initial-cloud check and the run falls back to the per-fr
 `reflow_no_align_unchecked` the raw cloud kept (`--no-canonical_check`), `reflow_capped` the
 dynamic branch without its scale-free position deltas (`--no-dynamic_scale_free`; identical to
 `reflow` on scenes of extent <= 1, i.e. the exact-priors suite), `reflow_promote` with
-`--promote_residual 3` (identical to `reflow` where the dataset has masks). `--schedule half` is the
+`--promote_residual 3` and `reflow_relabel` with `--relabel_every 100` (both identical to `reflow` where
+the dataset has masks). `--schedule half` is the
 ablation's half schedule (300 coarse + 1000 fine iterations, decay and densification scaled),
 `quarter` half of that again (150 + 500). `--report_only` trains nothing and prints the table of
 the finished runs.
@@ -59,6 +60,8 @@ METHODS = {
     "reflow_promote": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow", "--promote_residual", "3"],
     "reflow_masks8": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow",
                       "--mask_offsets", "-4", "-3", "-2", "-1", "1", "2", "3", "4"],
+    # labels that change during the fine stage: residual votes every 100 iterations (estimated masks only)
+    "reflow_relabel": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow", "--relabel_every", "100"],
 }
 SCHEDULES = {
     "full": [],

@@ -164,6 +164,19 @@ class ReFlowParams:
                                          "leaves unmasked pixels above this multiple of the view's median "
                                          "residual in at least label_vote of their views (reflow_plugin/"
                                          "promotion.py); 0 = off", check=_non_negative)
+    box_labels: bool = param(False, "ours, diagnostic: with ESTIMATED masks, at the start of the fine stage "
+                                    "every Gaussian inside the dynamic branch's box becomes dynamic (labels "
+                                    "that do not depend on the masks' recall: what full recall buys)")
+    relabel_every: int = param(0, "ours, optional: with ESTIMATED masks, every this many fine iterations "
+                                  "while densification runs, static Gaussians whose centre lay on flagged "
+                                  "pixels of the rendered training view (residual above relabel_residual x "
+                                  "the view's median, outside the mask) in at least label_vote of at least "
+                                  "relabel_min_views views become dynamic (labels that change during "
+                                  "training; promotion.py: ResidualVotes); 0 = off", check=_non_negative)
+    relabel_residual: float = param(3.0, "relabel_every: a pixel is flagged above this multiple of the "
+                                         "view's median residual", check=_positive)
+    relabel_min_views: int = param(5, "relabel_every: views a static Gaussian must have been counted in "
+                                      "before it can be promoted", check=_positive)
     seed_points: int = param(20_000, "most dynamic points seeded inside the motion masks, over all keyframes "
                                      "(0 = no seeding)", check=_non_negative)
     dynamic_keyframes: int = param(8, "ours: frames the dynamic points are seeded from, spread over the "

@@ -57,7 +57,7 @@ from .labels import aligned_depths, training_masks, vote_labels
 from .matching import DYNAMIC_KEY, FLOW_KEY, FlowPair, MatchingConfig, dynamic_share, flow_losses
 from .pairs import PairSampler, curriculum_radius
 from .params import ReFlowParams
-from .promotion import missed_motion_maps, promoted_gaussians
+from .promotion import ResidualVotes, missed_motion_maps, promoted_gaussians
 from .seeding import BACKGROUND_FACTOR, keyframes, reference_frame, ring_depth, seed_dynamic_points, window_scale
 from .separation import TIME_CENTER, TIME_LOG_SCALE, SeparatedDeformation
 from .upgrade import upgrade_4dgs_model, written_by_reflow
@@ -117,6 +117,7 @@ class ReFlowPlugin(Plugin):
         self._run_dir_path = Path(".")
         self._last = None
         self.external: ExternalFlowCache | None = None
+        self.relabel = ResidualVotes(self.p.relabel_residual) if self.p.relabel_every > 0 else None
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -465,6 +466,20 @@ class ReFlowPlugin(Plugin):
         self._hide_dynamic_in_coarse(ctx)
         if flagged is not None:
             self._promote(ctx, flagged)
+        if (ctx.stage == "fine" and self.p.box_labels and self.is_enabled("separation")
+                and self.info.get("mask_source") == "estimated"):
+            self._label_box(ctx)
+
+    def _label_box(self, ctx) -> None:
+        """`box_labels`: every Gaussian inside the dynamic branch's box becomes dynamic."""
+        model = ctx.model
+        high, low = model.deformation.get_aabb
+        means = model.get_xyz.detach()
+        inside = ((means >= low.to(means.device)) & (means <= high.to(means.device))).all(1)
+        before = int(model.deformation_table.sum())
+        model.set_deformation_table(model.deformation_table | inside.to(model.deformation_table.device))
+        self.info["box_labels"] = {"before": before, "dynamic": int(model.deformation_table.sum())}
+        log.info("box labels: %d -> %d dynamic Gaussians", before, self.info["box_labels"]["dynamic"])
 
     def _missed_motion(self, ctx) -> list[np.ndarray] | None:
         """Fine-stage start, estimated masks, `promote_residual` > 0: the coarse fit's flagged pixels."""
@@ -488,6 +503,19 @@ class ReFlowPlugin(Plugin):
         log.info("promotion: %d static Gaussians made dynamic (%.1f%% of unmasked pixels flagged by the coarse "
                  "fit's residual)", int(promoted.sum()), 100 * share)
         self._record(ctx)
+
+    def _relabel(self, ctx) -> None:
+        """Static Gaussians the residual votes call moving become dynamic (promotion.py: ResidualVotes)."""
+        model = ctx.model
+        promoted = self.relabel.promote(model, self.p.label_vote, self.p.relabel_min_views)
+        count = int(promoted.sum())
+        rounds = self.info.setdefault("relabel", [])
+        rounds.append({"iteration": ctx.iteration, "promoted": count})
+        if count:
+            model.set_deformation_table(model.deformation_table | promoted.to(model.deformation_table.device))
+            rounds[-1]["dynamic"] = int(model.deformation_table.sum())
+            log.info("relabel at fine iteration %d: %d static Gaussians made dynamic (%d dynamic now)",
+                     ctx.iteration, count, rounds[-1]["dynamic"])
 
     def _limit_pair_motion(self, cameras) -> None:
         """Partners only among frames whose cameras move at most pair_max_motion x the median motion
@@ -638,9 +666,17 @@ class ReFlowPlugin(Plugin):
             terms.append(external_flow_loss(flow, valid, flow_ext, confident))
         return torch.stack(terms).mean()
 
+    def _relabels(self, ctx) -> bool:
+        """`relabel_every`: fine stage, separation on, ESTIMATED masks (a dataset's masks are trusted)."""
+        return (self.relabel is not None and ctx.stage == "fine" and self.is_enabled("separation")
+                and self.info.get("mask_source") == "estimated")
+
     def post_backward(self, ctx) -> None:
         if not self.is_enabled("separation"):
             return
+        if self._relabels(ctx):  # before densification: the views' rows are the model's rows
+            for view in ctx.views:
+                self.relabel.accumulate(ctx.model, view, self.mask_tensors.get(view.camera.uid))
         settling = ctx.stage == "fine" and ctx.iteration <= self.p.dynamic_settle_fraction * ctx.stage_iterations
         frozen = (ctx.stage == "coarse" and self.p.coarse_static_only) or settling
         dynamic = self._dynamic(ctx)
@@ -655,6 +691,9 @@ class ReFlowPlugin(Plugin):
     def on_iteration_end(self, ctx) -> None:
         if ctx.stage != "fine":
             return
+        if (self._relabels(ctx) and ctx.iteration % self.p.relabel_every == 0
+                and ctx.iteration <= ctx.args.opt.densify_until_iter):
+            self._relabel(ctx)
         if self.p.dynamic_warmup > 0 and ctx.iteration == self.p.dynamic_warmup and self.is_enabled("separation"):
             ctx.model.unfreeze(["deformation", "grid"])
         every = self.p.flow_vis_every

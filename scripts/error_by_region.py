@@ -3,6 +3,11 @@
 
     python scripts/error_by_region.py output/ablation/skating/sep output/ablation/skating/sep_fullfm \
         -s data/synthetic/skating
+    python scripts/error_by_region.py RUN_A RUN_B -s SCENE --split train   # after render.py --skip_test
+
+`--split train` compares the TRAINING views (`train/ours_N`, written by `python render.py -m RUN
+--skip_test --skip_video`): a method that loses inside the mask on the training views too cannot
+fit the motion, one that fits them and loses on held-out views does not generalise it.
 
 Both runs must be evaluated on the same scene (their `test/ours_N/{renders,gt}` folders, written by
 train.py / render.py). Each test pixel goes to one region: inside the view's motion mask, or in a
@@ -30,13 +35,13 @@ from baselines.data.loader import load_scene  # noqa: E402
 BANDS_PX = (2.0, 5.0, 10.0, 20.0)
 
 
-def latest_test_folder(run: Path, iteration: int | None) -> Path:
-    """`run/test/ours_N` for the given N, else the highest N present."""
-    folders = sorted((run / "test").glob("ours_*"), key=lambda p: int(p.name.split("_")[1]))
+def latest_test_folder(run: Path, iteration: int | None, split: str = "test") -> Path:
+    """`run/<split>/ours_N` for the given N, else the highest N present."""
+    folders = sorted((run / split).glob("ours_*"), key=lambda p: int(p.name.split("_")[1]))
     if iteration is not None:
         folders = [f for f in folders if f.name == f"ours_{iteration}"]
     if not folders:
-        raise SystemExit(f"error_by_region: no test/ours_{iteration or 'N'} folder in {run}")
+        raise SystemExit(f"error_by_region: no {split}/ours_{iteration or 'N'} folder in {run}")
     return folders[-1]
 
 
@@ -63,15 +68,16 @@ def region_names() -> list[str]:
     return names + [f"> {BANDS_PX[-1]:g} px"]
 
 
-def compare(run_a: Path, run_b: Path, source: Path, iteration: int | None) -> str:
-    """Markdown table of the per-region comparison."""
-    folder_a, folder_b = latest_test_folder(run_a, iteration), latest_test_folder(run_b, iteration)
+def compare(run_a: Path, run_b: Path, source: Path, iteration: int | None, split: str = "test") -> str:
+    """Markdown table of the per-region comparison (`split`: "test" or "train" views)."""
+    folder_a, folder_b = latest_test_folder(run_a, iteration, split), latest_test_folder(run_b, iteration, split)
     renders_a, renders_b = read_views(folder_a / "renders"), read_views(folder_b / "renders")
     gts = read_views(folder_a / "gt")
-    cameras = load_scene(source, eval=True).test_cameras
+    scene = load_scene(source, eval=True)
+    cameras = scene.train_cameras if split == "train" else scene.test_cameras
     if not (len(renders_a) == len(renders_b) == len(gts) == len(cameras)):
         raise SystemExit(f"error_by_region: view counts differ: A {len(renders_a)}, B {len(renders_b)}, "
-                         f"gt {len(gts)}, scene test cameras {len(cameras)}")
+                         f"gt {len(gts)}, scene {split} cameras {len(cameras)}")
     n_regions = len(BANDS_PX) + 2
     pixels = np.zeros(n_regions)
     sq_a, sq_b = np.zeros(n_regions), np.zeros(n_regions)
@@ -91,7 +97,7 @@ def compare(run_a: Path, run_b: Path, source: Path, iteration: int | None) -> st
         return float(-10.0 * np.log10(max(sq / max(n, 1.0), 1e-12)))
 
     static_change = (sq_b - sq_a)[1:].sum()
-    lines = [f"A = {run_a} ({folder_a.name}), B = {run_b} ({folder_b.name}), {len(gts)} test views",
+    lines = [f"A = {run_a} ({folder_a.name}), B = {run_b} ({folder_b.name}), {len(gts)} {split} views",
              "", "| region | pixels | PSNR A | PSNR B | B - A | share of the static squared-error change |",
              "|---|---:|---:|---:|---:|---:|"]
     for k, name in enumerate(region_names()):
@@ -109,9 +115,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("run_a", type=Path)
     parser.add_argument("run_b", type=Path)
     parser.add_argument("-s", "--source", type=Path, required=True, help="the scene both runs were trained on")
-    parser.add_argument("--iteration", type=int, default=None, help="test/ours_N to compare (default: the last)")
+    parser.add_argument("--iteration", type=int, default=None, help="ours_N to compare (default: the last)")
+    parser.add_argument("--split", choices=("test", "train"), default="test",
+                        help="held-out views (default) or the training views (render.py --skip_test first)")
     args = parser.parse_args(argv)
-    print(compare(args.run_a, args.run_b, args.source, args.iteration))
+    print(compare(args.run_a, args.run_b, args.source, args.iteration, args.split))
     return 0
 
 

@@ -33,11 +33,11 @@ def test_region_labels_follow_the_distance_to_the_mask(tool):
     assert (tool.region_labels(np.zeros((4, 4), bool)) == len(tool.BANDS_PX) + 1).all()
 
 
-def _write_run(folder: Path, renders: list[np.ndarray], gts: list[np.ndarray]) -> None:
+def _write_run(folder: Path, renders: list[np.ndarray], gts: list[np.ndarray], split: str = "test") -> None:
     for sub, images in (("renders", renders), ("gt", gts)):
-        (folder / "test" / "ours_100" / sub).mkdir(parents=True)
+        (folder / split / "ours_100" / sub).mkdir(parents=True)
         for k, image in enumerate(images):
-            cv2.imwrite(str(folder / "test" / "ours_100" / sub / f"{k:05d}.png"), image[..., ::-1])
+            cv2.imwrite(str(folder / split / "ours_100" / sub / f"{k:05d}.png"), image[..., ::-1])
 
 
 def test_a_change_far_from_the_mask_is_attributed_to_the_far_band(tool, tmp_path, monkeypatch):
@@ -58,3 +58,22 @@ def test_a_change_far_from_the_mask_is_attributed_to_the_far_band(tool, tmp_path
     with pytest.raises(SystemExit, match="view counts differ"):
         monkeypatch.setattr(tool, "load_scene", lambda source, eval: SimpleNamespace(test_cameras=[]))
         tool.compare(tmp_path / "a", tmp_path / "b", tmp_path, None)
+
+
+def test_the_training_views_are_compared_with_the_training_cameras_masks(tool, tmp_path, monkeypatch):
+    gt = np.full((30, 40, 3), 128, np.uint8)
+    mask = np.zeros((30, 40), bool)
+    mask[:, :4] = True
+    worse = gt.copy()
+    worse[:, :4] += 20                                    # worse inside the mask only
+    _write_run(tmp_path / "a", [gt.copy()], [gt], split="train")
+    _write_run(tmp_path / "b", [worse], [gt], split="train")
+    scene = SimpleNamespace(train_cameras=[SimpleNamespace(evaluation_mask=torch.from_numpy(mask).float())],
+                            test_cameras=[])
+    monkeypatch.setattr(tool, "load_scene", lambda source, eval: scene)
+    table = tool.compare(tmp_path / "a", tmp_path / "b", tmp_path, None, split="train")
+    assert "1 train views" in table
+    inside = next(line for line in table.splitlines() if line.startswith("| inside the mask"))
+    assert float(inside.split("|")[5]) < -10  # B - A: B is worse inside the training views' mask
+    with pytest.raises(SystemExit, match="no test/ours_N folder"):
+        tool.compare(tmp_path / "a", tmp_path / "b", tmp_path, None)  # no held-out renders in these runs
