@@ -249,3 +249,27 @@ def test_mask_quality_scores():
     scores = mask_scores([estimate, truth], [truth, truth])
     assert scores["recall"] == pytest.approx(12 / 16) and scores["precision"] == pytest.approx(12 / 16)
     assert scores["iou"] == pytest.approx(12 / 20) and scores["true_px"] == 8 and scores["estimated_px"] == 8
+
+
+def test_the_simulator_cli_sets_the_real_priors_error_terms(tmp_path, capsys):
+    from baselines.synthetic.__main__ import main
+
+    base = ["--scene", "umbrella", "--frames", "3", "--size", "32x24", "--quiet", "--priors", "real",
+            "--scene_scale", "50"]
+    assert main([*base, "--out", str(tmp_path / "plain"), "--prior_edge_blur", "0", "--prior_bias", "0",
+                 "--prior_masks"]) == 0
+    meta = json.loads((tmp_path / "plain" / "scene.json").read_text())["priors"]
+    assert meta["edge_blur_px"] == 0 and meta["bias"] == 0 and meta["masks"] is True
+    assert meta["scale_range"] == list(Priors.real().scale_range)  # the other terms stay the real mode's
+    assert (tmp_path / "plain" / "motion_masks").is_dir()
+    depth = np.load(tmp_path / "plain" / "gt" / "depth" / "001.npy").astype(np.float64)
+    s, c = Priors.real().frame_affine(1, get_scene("umbrella").seed)
+    expected = s * (1 / depth) / np.median(1 / depth) + s * c  # sharp and unbiased: the affine map alone
+    np.testing.assert_allclose(np.load(tmp_path / "plain" / "disp" / "001.npy"), expected, rtol=1e-4)
+    assert main([*base, "--out", str(tmp_path / "real")]) == 0
+    assert not (tmp_path / "real" / "motion_masks").exists()
+    assert json.loads((tmp_path / "real" / "scene.json").read_text())["priors"]["edge_blur_px"] == 1.5
+    assert main(["--scene", "umbrella", "--out", str(tmp_path / "x"), "--prior_bias", "0"]) == 2  # exact priors
+    assert "--priors real" in capsys.readouterr().err
+    assert main([*base, "--out", str(tmp_path / "y"), "--prior_edge_blur", "-1"]) == 2
+    assert "edge_blur_px" in capsys.readouterr().err

@@ -8,6 +8,7 @@ NVIDIA-like world units); ground truth under gt/ stays exact.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -54,6 +55,12 @@ def build_parser() -> argparse.ArgumentParser:
                         help="exact: disparity = 1 / depth and the true motion masks; real: a monocular "
                              "network's disparity (per-frame scale and shift, low-frequency error, soft edges) "
                              "and no motion_masks/ (ground truth under gt/ either way)")
+    parser.add_argument("--prior_edge_blur", type=float, default=None, metavar="PX",
+                        help="--priors real only: blur of the disparity's depth edges in pixels (default 1.5; 0 = sharp)")
+    parser.add_argument("--prior_bias", type=float, default=None, metavar="F",
+                        help="--priors real only: size of the disparity's low-frequency error (default 0.05; 0 = none)")
+    parser.add_argument("--prior_masks", action="store_true",
+                        help="--priors real only: write the exact motion_masks/ as well (a run then uses them)")
     parser.add_argument("--scene_scale", type=float, default=1.0,
                         help="world units: every length x this (NVIDIA-like captures: 50)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -83,6 +90,17 @@ def _load_spec(path: Path) -> SceneSpec:
     return SceneSpec.from_dict(data)
 
 
+def _priors(args: argparse.Namespace) -> Priors:
+    """`--priors` with the real mode's knobs overridden (`--prior_edge_blur`, `--prior_bias`, `--prior_masks`)."""
+    priors = Priors.parse(args.priors)
+    knobs = {"edge_blur_px": args.prior_edge_blur, "bias": args.prior_bias, "masks": True if args.prior_masks else None}
+    given = {name: value for name, value in knobs.items() if value is not None}
+    if given and priors.exact:
+        raise ValueError("--prior_edge_blur, --prior_bias and --prior_masks change --priors real; "
+                         "the exact priors have no such error")
+    return dataclasses.replace(priors, **given)
+
+
 def run(argv: Optional[Sequence[str]] = None) -> Path | None:
     """Parse arguments and do the work; raises ValueError on bad input."""
     args = build_parser().parse_args(argv)
@@ -97,8 +115,7 @@ def run(argv: Optional[Sequence[str]] = None) -> Path | None:
     spec = get_scene(args.scene) if args.scene else _load_spec(args.spec)
     spec = spec.with_overrides(**overrides)
     start = time.perf_counter()
-    out = simulate(spec, args.out, progress=not args.quiet, priors=Priors.parse(args.priors),
-                   scene_scale=args.scene_scale)
+    out = simulate(spec, args.out, progress=not args.quiet, priors=_priors(args), scene_scale=args.scene_scale)
     if not args.quiet:
         print(f"{spec.name}: {spec.frames} frames {spec.width}x{spec.height} "
               f"[{','.join(spec.effect_names)}] priors {args.priors}, scale {args.scene_scale:g} -> {out} "
