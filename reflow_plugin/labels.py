@@ -56,7 +56,8 @@ def dataset_masks(cameras: Sequence[Camera]) -> list[np.ndarray] | None:
     return [c.mask.detach().cpu().numpy() > 0.5 for c in cameras]
 
 
-def _cache_key(cameras: Sequence[Camera], with_depth: bool, offsets: Sequence[int] = DEFAULT_OFFSETS) -> str:
+def _cache_key(cameras: Sequence[Camera], with_depth: bool, offsets: Sequence[int] = DEFAULT_OFFSETS,
+               depths: Sequence[np.ndarray] | None = None) -> str:
     # the default offsets leave the key as it was (masks cached by earlier runs stay valid)
     extra = "" if tuple(offsets) == DEFAULT_OFFSETS else f"|offsets={','.join(map(str, offsets))}"
     h = hashlib.sha256(f"v{CACHE_VERSION}|depth={with_depth}{extra}".encode())
@@ -64,6 +65,8 @@ def _cache_key(cameras: Sequence[Camera], with_depth: bool, offsets: Sequence[in
         h.update(f"{cam.image_name}|{cam.width}x{cam.height}|".encode())
         h.update(np.ascontiguousarray(_np(cam.viewmat)).tobytes())
         h.update(np.ascontiguousarray(cam.image.detach().cpu().numpy()[::8, ::8]).tobytes())
+    for depth in depths or []:  # the depth the test reads (another disparity correction: another key)
+        h.update(np.ascontiguousarray(np.asarray(depth, np.float32)[::4, ::4]).tobytes())
     return h.hexdigest()[:16]
 
 
@@ -73,7 +76,7 @@ def estimated_masks(cameras: Sequence[Camera], cache_dir: Path | None,
     """Masks from flow vs cameras (sorted by time for the pairing; each frame tested against the
     frames `offsets` away in that order), cached under `cache_dir`."""
     order = sorted(range(len(cameras)), key=lambda i: (cameras[i].time, cameras[i].frame_index))
-    key = _cache_key(cameras, depths is not None, offsets)
+    key = _cache_key(cameras, depths is not None, offsets, depths)
     folder = None if cache_dir is None else Path(cache_dir) / "motion_masks"
     if folder is not None and (folder / "key.json").is_file():
         try:

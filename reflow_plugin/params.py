@@ -39,6 +39,10 @@ def _sigmas(value: list[float]) -> str | None:
     return f"blur sigmas must be > 0, got {bad}" if bad else None
 
 
+def _grid_side(value: int) -> str | None:
+    return None if value == 0 or value >= 2 else "must be 0 (off) or >= 2"
+
+
 def _nonzero_ints(value: list[int]) -> str | None:
     bad = [o for o in value if not isinstance(o, int) or isinstance(o, bool) or o == 0]
     if bad or not value:
@@ -148,6 +152,12 @@ class ReFlowParams:
                                           "at their canonical place at every time)")
     dynamic_aabb_margin: float = param(0.25, "the dynamic HexPlane's box is the dynamic points' box grown by "
                                              "this fraction of its size per side", check=_non_negative)
+    disparity_field: int = param(4, "ours: the dataset's monocular disparity gets a smooth per-frame correction "
+                                    "(a bilinear field on this many control values per side, fitted to the "
+                                    "sparse static points after the affine fit and kept only where it lowers "
+                                    "the error on held-out points; reflow_plugin/disparity_field.py) before the "
+                                    "masks, the canonical space and the seeds read it; 0 = the affine fit alone",
+                                 check=_grid_side)
     # --- labels and seeding ---
     label_source: str = param("auto", "where static/dynamic labels come from: auto (canonical init, else the "
                                       "dataset's motion masks, else estimated masks), masks, estimate, none",

@@ -50,6 +50,7 @@ from baselines.data import PointCloud
 from baselines.fourdgs.gaussian_model import GaussianModel
 from baselines.fourdgs.plugins import Plugin
 
+from .disparity_field import correct_disparity
 from .evaluate import flow_metrics, summary_line, write_flow_metrics
 from .external import ExternalFlowCache, external_flow_loss
 from .flow import camera_motion_pixels, flow_features, full_flow
@@ -92,6 +93,7 @@ class ReFlowPlugin(Plugin):
         self.sampler: PairSampler | None = None
         self.masks: list[np.ndarray] | None = None  # per training camera (uid order), True = dynamic
         self.coarse_fitted = False  # a coarse stage ran in this process (promotion reads its fit)
+        self.depth_cameras: list = []  # the training cameras as the depth steps read them (initial_point_cloud)
         self.mask_tensors: dict[int, Tensor] = {}
         self.labels: np.ndarray | None = None  # per initial point, True = dynamic
         self.reference: int | None = None  # training camera the dynamic points come from
@@ -213,7 +215,7 @@ class ReFlowPlugin(Plugin):
             log.warning("comp_init is enabled but %s; the host's initial cloud is used instead", reason)
 
     def initial_point_cloud(self, ctx) -> PointCloud | None:
-        cameras = ctx.train_cameras
+        cameras = self.depth_cameras = self._corrected_disparity(ctx)
         host = ctx.point_cloud
         masks, source = training_masks(cameras, self.p.label_source, self._run_dir(ctx),
                                        aligned_depths(cameras, host.points), self.p.mask_offsets)
@@ -226,9 +228,35 @@ class ReFlowPlugin(Plugin):
                 return cloud
         return self._host_cloud(ctx, masks, source)
 
+    def _corrected_disparity(self, ctx) -> list:
+        """The training cameras, their disparity with the smooth per-frame correction (disparity_field.py)
+        where it was kept; the cameras themselves without disparity, sparse points or `disparity_field`."""
+        cameras = ctx.train_cameras
+        points = ctx.point_cloud.points if ctx.point_cloud_source in ("dataset", "triangulated") else None
+        if (self.p.disparity_field == 0 or points is None or len(points) == 0
+                or any(c.disparity is None for c in cameras)):
+            return list(cameras)
+        out, reports = [], []
+        for cam in cameras:
+            disparity = cam.disparity.detach().cpu().numpy().astype(np.float64)
+            corrected, report = correct_disparity(cam, disparity, points, self.p.disparity_field)
+            reports.append(report)
+            out.append(replace(cam, disparity=torch.as_tensor(corrected, dtype=cam.disparity.dtype,
+                                                              device=cam.disparity.device))
+                       if report["corrected"] else cam)
+        done = [r for r in reports if r["corrected"]]
+        before = float(np.median([r["residual"] for r in done])) if done else None
+        after = float(np.median([r["residual_corrected"] for r in done])) if done else None
+        self.info["disparity_field"] = {"grid": self.p.disparity_field, "frames": len(cameras),
+                                        "corrected": len(done), "residual": before, "residual_corrected": after}
+        if done:
+            log.info("disparity: a smooth correction kept in %d of %d frames (median residual at the sparse "
+                     "points %.3f -> %.3f)", len(done), len(cameras), before, after)
+        return out
+
     def _host_cloud(self, ctx, masks, source) -> PointCloud | None:
         """Part 1: the host's cloud, labelled by mask vote, plus keyframe seeds (None: the host's as is)."""
-        cameras, host = ctx.train_cameras, ctx.point_cloud
+        cameras, host = self.depth_cameras, ctx.point_cloud
         depths = aligned_depths(cameras, host.points, masks)
         labels = (vote_labels(host.points, cameras, masks, depths, self.p.label_vote) if masks is not None
                   else np.zeros(len(host), bool))
@@ -298,7 +326,7 @@ class ReFlowPlugin(Plugin):
         options.device = str(ctx.device)
         anchors = ctx.point_cloud.points if ctx.point_cloud_source in ("dataset", "triangulated") else None
         attempts = [("canonical space", options)]
-        cameras = ctx.train_cameras
+        cameras = self.depth_cameras
         keep = not self.p.canonical_check
         disparity = options.provider in ("auto", "depth") and all(c.disparity is not None for c in cameras)
         bounds = all(c.extras.get("near_far") is not None for c in cameras)
@@ -307,7 +335,8 @@ class ReFlowPlugin(Plugin):
                              replace(options, align=True, refine=False)))
         failures = []
         for what, opts in attempts:
-            space = build_canonical_space(ctx.scene, masks, opts, cache_dir=self._run_dir(ctx) / "canonical",
+            space = build_canonical_space(replace(ctx.scene, train_cameras=self.depth_cameras), masks, opts,
+                                          cache_dir=self._run_dir(ctx) / "canonical",
                                           progress=not ctx.args.run.quiet, anchors=anchors)
             static, dynamic, times, groups, described = self._compose(ctx, space, masks)
             fits = space.report["alignment"].get("fits") or {}
@@ -344,7 +373,7 @@ class ReFlowPlugin(Plugin):
         """(static cloud, dynamic cloud, seed times, DynamicGroups for the check, description)."""
         from .canonical.check import DynamicGroup
 
-        static, cameras = space.static, ctx.train_cameras
+        static, cameras = space.static, self.depth_cameras
         if len(static) == 0:  # every pixel masked or unconfident: the host's cloud stands in
             log.warning("canonical space: no static point; the host's %s cloud is used as the static cloud",
                         ctx.point_cloud_source)

@@ -8,6 +8,8 @@ fallbacks, the initial-cloud check, and the stall guard staying quiet on healthy
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import json
 import shutil
 from pathlib import Path
@@ -273,3 +275,32 @@ def test_the_simulator_cli_sets_the_real_priors_error_terms(tmp_path, capsys):
     assert "--priors real" in capsys.readouterr().err
     assert main([*base, "--out", str(tmp_path / "y"), "--prior_edge_blur", "-1"]) == 2
     assert "edge_blur_px" in capsys.readouterr().err
+
+
+def test_the_disparity_correction_brings_the_aligned_depth_nearer_the_truth(tmp_path):
+    from types import SimpleNamespace
+
+    from reflow_plugin.labels import aligned_depths
+    from reflow_plugin.plugin import ReFlowPlugin
+
+    path = tmp_path / "skating"  # the suite's size: enough sparse points for the default 4 x 4 field
+    simulate(get_scene("skating", frames=12, width=128, height=96, seed=0), path, progress=False,
+             priors=Priors.real(), scene_scale=SCALE)
+    scene = load_scene(path, eval=False)
+    points = triangulate_static_points(scene.train_cameras, seed=0).points
+    ctx = SimpleNamespace(train_cameras=scene.train_cameras, point_cloud=SimpleNamespace(points=points),
+                          point_cloud_source="triangulated")
+
+    def error(cameras) -> float:
+        depths = aligned_depths(cameras, points)
+        return float(np.median([np.nanmedian(np.abs(d / _true_depth(scene, c) - 1)) for c, d in zip(cameras, depths)]))
+
+    plugin = ReFlowPlugin()
+    corrected = plugin._corrected_disparity(ctx)
+    info = plugin.info["disparity_field"]
+    assert info["corrected"] > 0 and info["residual_corrected"] < info["residual"]
+    assert error(corrected) < 0.8 * error(scene.train_cameras)
+    assert all(c.disparity is not d.disparity for c, d in zip(scene.train_cameras, corrected)
+               if c is not d)  # corrected copies; the dataset's cameras keep their disparity
+    off = ReFlowPlugin({"ReFlowParams": replace(plugin.p, disparity_field=0)})
+    assert all(a is b for a, b in zip(off._corrected_disparity(ctx), scene.train_cameras))

@@ -31,10 +31,13 @@ ARRAYS = ("static_points", "static_colors", "dynamic_points", "dynamic_colors")
 
 def cache_key(cameras: Sequence[Camera], masks: Sequence[np.ndarray] | None, provider_key: str,
               settings: Mapping[str, Any]) -> str:
-    """16 hex digits of sha256 over cameras (poses, images), masks, provider and settings."""
+    """16 hex digits of sha256 over cameras (poses, images, disparity), masks, provider and settings."""
     text = json.dumps(dict(settings), sort_keys=True)
     h = hashlib.sha256(f"canonical v{CACHE_VERSION}|{provider_key}|{text}".encode())
     h.update(camera_key(cameras, False).encode())
+    for cam in cameras:  # the depth provider reads the (possibly corrected) disparity
+        if cam.disparity is not None:
+            h.update(np.ascontiguousarray(cam.disparity.detach().cpu().numpy().astype(np.float32)[::4, ::4]).tobytes())
     for mask in masks or []:
         h.update(np.packbits(np.asarray(mask, bool)).tobytes())
     return h.hexdigest()[:16]
