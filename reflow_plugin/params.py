@@ -187,6 +187,12 @@ class ReFlowParams:
                                          "view's median residual", check=_positive)
     relabel_min_views: int = param(5, "relabel_every: views a static Gaussian must have been counted in "
                                       "before it can be promoted", check=_positive)
+    seed_edge_ratio: float = param(1.1, "ours: keyframe seeds on depth edges (the 3x3 neighbourhood's depths "
+                                        "span more than this ratio: a monocular depth map's soft edges put "
+                                        "such pixels between the object and the background) take the nearest "
+                                        "depth of their 5x5 neighbourhood (README: \"Seeds on soft depth edges\"); 0 = "
+                                        "the depth as it is",
+                                   check=_non_negative)
     seed_points: int = param(20_000, "most dynamic points seeded inside the motion masks, over all keyframes "
                                      "(0 = no seeding)", check=_non_negative)
     dynamic_keyframes: int = param(8, "ours: frames the dynamic points are seeded from, spread over the "

@@ -293,7 +293,8 @@ class ReFlowPlugin(Plugin):
                                 cameras[k].image_name)
                     continue
                 depth, how = BACKGROUND_FACTOR * ring, f"{BACKGROUND_FACTOR} x the surrounding static depth"
-            seeds = seed_dynamic_points(cameras[k], masks[k], depth, budget, seed=ctx.args.opt.seed + k)
+            seeds = seed_dynamic_points(cameras[k], masks[k], depth, budget, seed=ctx.args.opt.seed + k,
+                                        edge_ratio=self.p.seed_edge_ratio)
             clouds.append(seeds)
             times.append(np.full(len(seeds), cameras[k].time))
             used.append(cameras[k].image_name)

@@ -97,15 +97,42 @@ def ring_depth(camera: Camera, mask: np.ndarray, static_points: np.ndarray) -> f
     return float(np.median(z[seen]))
 
 
+def depth_edges(depth: np.ndarray, ratio: float) -> np.ndarray:
+    """[H, W] bool: pixels whose 3x3 neighbourhood spans a depth ratio above `ratio` (or has no depth).
+
+    A monocular depth map's edges are soft: the pixels between an object and what lies behind it
+    get depths in between, and back-projected they float in the gap (a halo around the object).
+    """
+    z = np.where(np.isfinite(depth) & (depth > 0), depth, np.inf).astype(np.float32)
+    kernel = np.ones((3, 3), np.uint8)
+    highest = cv2.dilate(z, kernel)
+    lowest = cv2.erode(z, kernel)
+    return ~(highest <= ratio * lowest)
+
+
+def snap_edges_to_nearer(depth: np.ndarray, ratio: float) -> np.ndarray:
+    """[H, W] depth with the pixels on depth edges (`depth_edges`) set to the smallest valid depth
+    of their 5x5 neighbourhood (unchanged elsewhere)."""
+    z = np.where(np.isfinite(depth) & (depth > 0), depth, np.inf).astype(np.float32)
+    nearest = cv2.erode(z, np.ones((5, 5), np.uint8)).astype(np.float64)
+    edges = depth_edges(depth, ratio) & np.isfinite(nearest)
+    return np.where(edges, nearest, depth)
+
+
 def seed_dynamic_points(camera: Camera, mask: np.ndarray, depth: np.ndarray | float, max_points: int,
-                        seed: int = 0) -> PointCloud:
+                        seed: int = 0, edge_ratio: float = 0.0) -> PointCloud:
     """Back-project the masked pixels of `camera` ([P, 3] world points, their colours).
 
     Args:
         mask: [H, W] bool. depth: [H, W] metric z-depth, or one value for every pixel.
         max_points: at most this many pixels, evenly subsampled (seeded).
+        edge_ratio: > 0: pixels on depth edges (`depth_edges` at this ratio) take the NEAREST depth of
+            their 5x5 neighbourhood (a moving object occludes what is behind it, so its rim belongs
+            to the nearer surface; thin parts keep their pixels).
     Pixels with a non-finite or non-positive depth are skipped.
     """
+    if edge_ratio > 0 and not np.isscalar(depth):
+        depth = snap_edges_to_nearer(np.asarray(depth, np.float64), edge_ratio)
     rows, cols = np.nonzero(mask)
     z = np.full(len(rows), float(depth)) if np.isscalar(depth) else np.asarray(depth, np.float64)[rows, cols]
     ok = np.isfinite(z) & (z > 0)
