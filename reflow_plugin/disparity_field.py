@@ -13,7 +13,7 @@ on the real-priors truck the 5% error alone takes the masks' IoU from 0.85 to 0.
 
 with (s, o) the robust affine fit and g a bilinear field on a G x G grid of control values over
 the image. g is fitted to the log residuals r_k = log((1 / z_k) / (s d_k + o)) of the affine fit's
-inlier points (clipped at 3 robust sigmas) by regularised least squares:
+inlier points (those beyond 3 robust sigmas of the median left out) by regularised least squares:
 
     min_c  mean_k (B_k c - r_k)^2 + SMOOTH ||D c||^2 + SHRINK ||c||^2
 
