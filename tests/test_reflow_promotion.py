@@ -90,16 +90,21 @@ def _view_at(cam, image: torch.Tensor, pixels: torch.Tensor):
     return ViewRender(camera=cam, state=None, colors=None, projection=projection, image=image)
 
 
-def test_residual_votes_promote_static_gaussians_on_unexplained_pixels_inside_the_box(tiny_scene, tmp_path):
-    from reflow_plugin.promotion import ResidualVotes
-
+def _missed_square(tiny_scene, tmp_path):
+    """(model, a camera whose ground truth is black, a render of it that is white in one square)."""
     trainer = _built(tiny_scene, tmp_path)
-    model = trainer.ctx.model
-    n = model.num_gaussians
     cam = trainer.train_cameras[0]
     cam = replace(cam, image=torch.zeros(cam.height, cam.width, 3))
     render_image = torch.zeros_like(cam.image)
     render_image[4:12, 4:12] = 1.0  # the model misses this square in every view
+    return trainer.ctx.model, cam, render_image
+
+
+def test_residual_votes_promote_static_gaussians_on_unexplained_pixels_inside_the_box(tiny_scene, tmp_path):
+    from reflow_plugin.promotion import ResidualVotes
+
+    model, cam, render_image = _missed_square(tiny_scene, tmp_path)
+    n = model.num_gaussians
     q = n // 4
     pixels = torch.full((n, 2), 24.5)  # explained pixels
     pixels[:q] = 8.5  # rows 0..q: on the square (static)
@@ -142,13 +147,8 @@ def test_residual_votes_promote_static_gaussians_on_unexplained_pixels_inside_th
 def test_residual_vote_counts_follow_densification(tiny_scene, tmp_path):
     from reflow_plugin.promotion import ResidualVotes
 
-    trainer = _built(tiny_scene, tmp_path)
-    model = trainer.ctx.model
+    model, cam, image = _missed_square(tiny_scene, tmp_path)
     n = model.num_gaussians
-    cam = trainer.train_cameras[0]
-    cam = replace(cam, image=torch.zeros(cam.height, cam.width, 3))
-    image = torch.zeros_like(cam.image)
-    image[4:12, 4:12] = 1.0
     pixels = torch.full((n, 2), 24.5)
     pixels[0] = 8.5
     model.set_deformation_table(torch.zeros(n, dtype=torch.bool))
