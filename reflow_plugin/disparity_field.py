@@ -13,11 +13,17 @@ on the real-priors truck the 5% error alone takes the masks' IoU from 0.85 to 0.
 
 with (s, o) the robust affine fit and g a bilinear field on a G x G grid of control values over
 the image. g is fitted to the log residuals r_k = log((1 / z_k) / (s d_k + o)) of the affine fit's
-inlier points (those beyond 3 robust sigmas of the median left out) by regularised least squares:
+inlier points (those beyond 3 robust sigmas of the median left out) by regularised, weighted least
+squares, iterated as a Tukey biweight with the scale sigma of those residuals fixed:
 
-    min_c  mean_k (B_k c - r_k)^2 + SMOOTH ||D c||^2 + SHRINK ||c||^2
+    min_c  sum_k w_k (B_k c - r_k)^2 / sum_k w_k + SMOOTH ||D c||^2 + SHRINK ||c||^2
 
-(B_k: the bilinear weights of point k's pixel, D: differences of neighbouring control values).
+(B_k: the bilinear weights of point k's pixel, D: differences of neighbouring control values,
+w_k = v_k tukey((B_k c - r_k) / (4.685 sigma)), v_k the point's coverage vote: one vote per image
+region, reflow_plugin.disparity.coverage_weights). The votes and the biweight keep a moving object
+triangulated as if static (a compact, textured, self-consistent cluster) from bending the field
+toward its wrong depth; where no static point exists (behind a large moving object) the field
+is an interpolation of its surroundings and can still be a few percent off there.
 It is kept only if it lowers the median |residual| on points it was NOT fitted to (two folds,
 seeded) by at least MIN_GAIN of it and MIN_ABS_GAIN; then it is refitted on all points. The corrected disparity is
 
@@ -31,7 +37,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .disparity import fit_disparity, project
+from .disparity import TUKEY, coverage_weights, fit_disparity, project, weighted_median
 
 SMOOTH = 1e-3  # weight of the neighbouring-control differences
 SHRINK = 1e-5  # weight pulling every control value toward 0 (no correction)
@@ -67,12 +73,23 @@ def _differences(grid: int) -> np.ndarray:
     return np.asarray(rows)
 
 
-def fit_field(weights: np.ndarray, residuals: np.ndarray, grid: int) -> np.ndarray:
-    """[grid * grid] control values minimising the module docstring's regularised least squares."""
-    count = max(len(residuals), 1)
+def fit_field(weights: np.ndarray, residuals: np.ndarray, grid: int, votes: np.ndarray | None = None,
+              sigma: float | None = None, iterations: int = 5) -> np.ndarray:
+    """[grid * grid] control values minimising the module docstring's regularised least squares,
+    each point counted with its vote [K] and, given a robust scale `sigma`, a Tukey biweight."""
+    votes = np.ones(len(residuals)) if votes is None else np.asarray(votes, np.float64)
     D = _differences(grid)
-    A = weights.T @ weights / count + SMOOTH * D.T @ D + SHRINK * np.eye(grid * grid)
-    return np.linalg.solve(A, weights.T @ residuals / count)
+    regulariser = SMOOTH * D.T @ D + SHRINK * np.eye(grid * grid)
+    w = votes.copy()
+    values = np.zeros(grid * grid)
+    for _ in range(1 if sigma is None else iterations):
+        total = max(float(w.sum()), 1e-12)
+        A = (weights * w[:, None]).T @ weights / total + regulariser
+        values = np.linalg.solve(A, (weights * w[:, None]).T @ residuals / total)
+        if sigma is not None:
+            u = (residuals - weights @ values) / (TUKEY * max(sigma, 1e-3))
+            w = votes * np.where(np.abs(u) < 1.0, (1.0 - u ** 2) ** 2, 0.0)
+    return values
 
 
 def field_map(values: np.ndarray, width: int, height: int, grid: int) -> np.ndarray:
@@ -95,15 +112,18 @@ def correct_disparity(camera, disparity: np.ndarray, points: np.ndarray, grid: i
     height, width = disparity.shape
     x, y, z = _pixels(camera, points, width, height, mask)
     d = disparity[np.floor(y).astype(int), np.floor(x).astype(int)] if len(z) else np.zeros(0)
-    fit = fit_disparity(d, z) if len(z) else None
+    fit = fit_disparity(d, z, weights=coverage_weights(x, y, width, height)) if len(z) else None
     if fit is None:
         return disparity, {"corrected": False, "points": int(len(z)), "why": "no affine fit"}
     u = fit.inverse(d)
     ok = (u > 0) & np.isfinite(u)
     r = np.log(np.where(ok, 1.0 / (z * np.where(ok, u, 1.0)), 1.0))
-    sigma = 1.4826 * float(np.median(np.abs(r[ok] - np.median(r[ok])))) + 1e-9 if ok.any() else 0.0
-    inlier = ok & (np.abs(r - np.median(r[ok]) if ok.any() else r) <= 3.0 * max(sigma, 1e-3))
+    votes = coverage_weights(x, y, width, height)
+    centre = float(weighted_median(r[ok], votes[ok])) if ok.any() else 0.0
+    sigma = 1.4826 * float(weighted_median(np.abs(r[ok] - centre), votes[ok])) + 1e-9 if ok.any() else 0.0
+    inlier = ok & (np.abs(r - centre) <= 3.0 * max(sigma, 1e-3))
     x, y, r = x[inlier], y[inlier], r[inlier]
+    votes = coverage_weights(x, y, width, height)
     report = {"corrected": False, "points": int(len(r)), "residual": float(np.median(np.abs(np.expm1(r))))
               if len(r) else None}
     if len(r) < MIN_PER_CONTROL * grid * grid:
@@ -112,14 +132,14 @@ def correct_disparity(camera, disparity: np.ndarray, points: np.ndarray, grid: i
     fold = np.random.default_rng(seed).permutation(len(r)) % 2 == 0
     before, after = [], []
     for train in (fold, ~fold):
-        values = fit_field(B[train], r[train], grid)
+        values = fit_field(B[train], r[train], grid, votes[train], sigma)
         before.append(np.abs(r[~train]))
         after.append(np.abs(r[~train] - B[~train] @ values))
     held_before, held_after = float(np.median(np.concatenate(before))), float(np.median(np.concatenate(after)))
     report.update(held_out_before=held_before, held_out_after=held_after)
     if not (held_after <= (1.0 - MIN_GAIN) * held_before and held_before - held_after >= MIN_ABS_GAIN):
         return disparity, dict(report, why="no held-out gain")
-    values = fit_field(B, r, grid)
+    values = fit_field(B, r, grid, votes, sigma)
     g = field_map(values, width, height, grid)
     full = fit.inverse(disparity)
     corrected = np.where(full > 0, (full * np.exp(g) - fit.shift) / fit.scale, disparity)

@@ -33,7 +33,7 @@ import numpy as np
 from baselines.data import Camera
 from baselines.data.motion_masks import MotionMaskOptions, estimate_motion_masks
 
-from .disparity import MIN_POINTS, fit_frames, project  # noqa: F401 (project: re-exported)
+from .disparity import fit_frames, project  # noqa: F401 (project: re-exported)
 
 log = logging.getLogger(__name__)
 EMPTY_DATASET_MASKS = "dataset (every mask empty: no moving pixel)"  # results.json["reflow"]["mask_source"]
@@ -139,11 +139,11 @@ def aligned_depths(cameras: Sequence[Camera], static_points: np.ndarray,
     """Metric z-depth [H, W] per camera from its disparity fitted to the static points, or None.
 
     Each frame's affine inverse-depth fit (reflow_plugin.disparity.fit_frames: sparse points, else
-    the dataset's near/far bounds, else a neighbour's depth range). None when any camera lacks
-    disparity, there are too few static points, or a frame has no fit at all. Pixels whose fitted
-    inverse depth is not positive get +inf depth (no evidence).
+    the dataset's near/far bounds, else a neighbour's depth range). static_points: [P, 3] metric
+    points (may be empty: the bounds alone). None when any camera lacks disparity or a frame has no
+    fit at all. Pixels whose fitted inverse depth is not positive get +inf depth (no evidence).
     """
-    if not cameras or any(c.disparity is None for c in cameras) or len(static_points) < MIN_POINTS:
+    if not cameras or any(c.disparity is None for c in cameras):
         return None
     disparities = [cam.disparity.detach().cpu().numpy().astype(np.float64) for cam in cameras]
     fits = fit_frames(cameras, disparities, static_points, masks)

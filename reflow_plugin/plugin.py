@@ -69,6 +69,15 @@ log = logging.getLogger("reflow")
 RUN_FOLDER = "reflow"
 HIDDEN_OPACITY = "reflow_hidden_opacity"  # buffer holding the dynamic opacities during the coarse stage
 HIDDEN_LOGIT = -30.0
+METRIC_SOURCES = ("dataset", "triangulated")  # host clouds whose points are metric evidence (not "random")
+
+
+def _metric_points(ctx) -> np.ndarray:
+    """[P, 3] the host's points where they measure the scene (dataset / triangulated), else [0, 3]:
+    a random cloud must not be fitted as if it were (the disparity then takes the bounds' fit)."""
+    if ctx.point_cloud_source in METRIC_SOURCES:
+        return np.asarray(ctx.point_cloud.points, np.float64)
+    return np.zeros((0, 3))
 
 
 def canonical_available() -> tuple[bool, str]:
@@ -216,9 +225,8 @@ class ReFlowPlugin(Plugin):
 
     def initial_point_cloud(self, ctx) -> PointCloud | None:
         cameras = self.depth_cameras = self._corrected_disparity(ctx)
-        host = ctx.point_cloud
         masks, source = training_masks(cameras, self.p.label_source, self._run_dir(ctx),
-                                       aligned_depths(cameras, host.points), self.p.mask_offsets)
+                                       aligned_depths(cameras, _metric_points(ctx)), self.p.mask_offsets)
         self.masks, self.info["mask_source"] = masks, source
         if masks is not None:
             self.mask_tensors = {c.uid: torch.from_numpy(m).to(ctx.device) for c, m in zip(cameras, masks)}
@@ -232,8 +240,8 @@ class ReFlowPlugin(Plugin):
         """The training cameras, their disparity with the smooth per-frame correction (disparity_field.py)
         where it was kept; the cameras themselves without disparity, sparse points or `disparity_field`."""
         cameras = ctx.train_cameras
-        points = ctx.point_cloud.points if ctx.point_cloud_source in ("dataset", "triangulated") else None
-        if (self.p.disparity_field == 0 or points is None or len(points) == 0
+        points = _metric_points(ctx)
+        if (self.p.disparity_field == 0 or len(points) == 0
                 or any(c.disparity is None for c in cameras)):
             return list(cameras)
         out, reports = [], []
@@ -257,7 +265,7 @@ class ReFlowPlugin(Plugin):
     def _host_cloud(self, ctx, masks, source) -> PointCloud | None:
         """Part 1: the host's cloud, labelled by mask vote, plus keyframe seeds (None: the host's as is)."""
         cameras, host = self.depth_cameras, ctx.point_cloud
-        depths = aligned_depths(cameras, host.points, masks)
+        depths = aligned_depths(cameras, _metric_points(ctx), masks)
         labels = (vote_labels(host.points, cameras, masks, depths, self.p.label_vote) if masks is not None
                   else np.zeros(len(host), bool))
         cloud = host
@@ -325,7 +333,7 @@ class ReFlowPlugin(Plugin):
 
         options = options_from_params(self.p)
         options.device = str(ctx.device)
-        anchors = ctx.point_cloud.points if ctx.point_cloud_source in ("dataset", "triangulated") else None
+        anchors = _metric_points(ctx) if ctx.point_cloud_source in METRIC_SOURCES else None
         attempts = [("canonical space", options)]
         cameras = self.depth_cameras
         keep = not self.p.canonical_check

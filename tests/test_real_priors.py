@@ -119,6 +119,9 @@ def test_frames_without_sparse_points_fall_back_to_bounds_then_neighbours(loaded
     assert all(f.source == "sparse" for f in fits)
     none = fit_frames(cams, disparities, np.zeros((0, 3)))
     assert {f.source for f in none} == {"bounds"} and all(f.rejected == ["0 sparse points"] for f in none)
+    from reflow_plugin.labels import aligned_depths  # no point at all (a random host cloud): the bounds
+    np.testing.assert_allclose(aligned_depths(cams, np.zeros((0, 3)))[0],
+                               np.nan_to_num(none[0].depth(disparities[0]), nan=np.inf))
     no_bounds = fit_frames(cams, disparities, None, use_bounds=False)
     assert {f.source for f in no_bounds} == {"none"} and not any(f.usable for f in no_bounds)
     # a frame whose fit would put its pixels behind the camera is not used as is
