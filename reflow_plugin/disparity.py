@@ -15,7 +15,8 @@ cameras fixed, the scene already has a metric scale; each frame's (s_n, o_n) is 
    fixed at the start's robust scale, kept unless it worsens the median |residual| by more than
    10% (a coherent cluster of wrong points must not pull the polish). Every median and the
    polish count each point with its vote, 1 / (points in its cell of a 16-cell grid along the
-   image's longer side): one vote per image region, not per point (`coverage_weights`). It is
+   image's longer side): one vote per image region, not per point (`coverage_weights`; above
+   SCORE_POINTS points the samples' medians are taken on that many points drawn by vote). It is
    accepted with at least MIN_POINTS inliers (|r| < 3 sigma), s > 0, at most MAX_BEHIND of the
    frame's valid pixels with s d + o <= 0 (behind the camera / at infinity), and, when the
    dataset has near/far bounds, the frame's median fitted depth inside
@@ -43,6 +44,7 @@ TUKEY = 4.685  # biweight cut-off in robust sigmas (95% efficiency under Gaussia
 MAX_POLISH_LOSS = 1.1  # the IRLS polish is kept when its median |residual| is at most this x the start's
 COVERAGE_CELLS = 16  # one vote per cell of a grid with this many cells along the image's longer side
 SAMPLES = 200  # 2-point samples of the least-median-of-squares start
+SCORE_POINTS = 2048  # above this many points, each sample's median is taken on this many drawn by vote
 
 
 def project(points: np.ndarray, camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -156,7 +158,11 @@ def fit_disparity(disparity: np.ndarray, depth: np.ndarray, iterations: int = 10
     best = None
     if good.any():
         s_all, o_all = s_all[good], o_all[good]
-        cost = weighted_median(np.abs((s_all[:, None] * d[None] + o_all[:, None]) * z[None] - 1.0), votes)
+        if len(d) <= SCORE_POINTS:  # each candidate's weighted median residual
+            cost = weighted_median(np.abs((s_all[:, None] * d[None] + o_all[:, None]) * z[None] - 1.0), votes)
+        else:  # ... estimated on points drawn by vote (a frame with 20k points: 20 ms, not 0.4 s)
+            score = rng.choice(len(d), SCORE_POINTS, p=votes / votes.sum())
+            cost = np.median(np.abs((s_all[:, None] * d[score][None] + o_all[:, None]) * z[score][None] - 1.0), axis=1)
         k = int(np.argmin(cost))
         best = (float(s_all[k]), float(o_all[k]))
     if best is None:

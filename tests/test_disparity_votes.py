@@ -12,7 +12,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from reflow_plugin.disparity import coverage_weights, fit_disparity, weighted_median
+from reflow_plugin.disparity import SCORE_POINTS, coverage_weights, fit_disparity, weighted_median
 from reflow_plugin.disparity_field import bilinear_weights, fit_field
 
 WIDTH, HEIGHT = 128, 96
@@ -20,15 +20,16 @@ OBJECT = (slice(40, 80), slice(8, 56))  # rows, cols of the moving object in the
 TOO_FAR = 1.56  # the object's triangulated depth / its true depth (the real-priors truck's)
 
 
-def _scene(seed: int = 0):
-    """(x, y, disparity, depth of the points, true depth at the pixels, on-object) of one frame."""
+def _scene(seed: int = 0, density: int = 1):
+    """(x, y, disparity, depth of the points, true depth at the pixels, on-object) of one frame
+    (`density` x 600 static points, `density` x 220 on the object)."""
     rng = np.random.default_rng(seed)
     # static points spread over the image, a dense textured object on a sixth of it
-    sx, sy = rng.uniform(0, WIDTH, 600), rng.uniform(0, HEIGHT, 600)
+    sx, sy = rng.uniform(0, WIDTH, 600 * density), rng.uniform(0, HEIGHT, 600 * density)
     static = ~((sy >= OBJECT[0].start) & (sy < OBJECT[0].stop) & (sx >= OBJECT[1].start) & (sx < OBJECT[1].stop))
     sx, sy = sx[static], sy[static]
-    ox = rng.uniform(OBJECT[1].start, OBJECT[1].stop, 220)
-    oy = rng.uniform(OBJECT[0].start, OBJECT[0].stop, 220)
+    ox = rng.uniform(OBJECT[1].start, OBJECT[1].stop, 220 * density)
+    oy = rng.uniform(OBJECT[0].start, OBJECT[0].stop, 220 * density)
     x, y = np.concatenate([sx, ox]), np.concatenate([sy, oy])
     on = np.r_[np.zeros(len(sx), bool), np.ones(len(ox), bool)]
     true_depth = np.where(on, 20.0 + 3.0 * (ox.mean() - x) / WIDTH, 40.0 + 30.0 * (HEIGHT - y) / HEIGHT)
@@ -70,6 +71,16 @@ def test_a_self_consistent_object_cluster_does_not_pull_the_fit(seed):
     # smooth error extrapolated to a nearer depth, the same with or without the cluster)
     assert voted[0] == pytest.approx(static_only[0], abs=0.02) and voted[0] < 0.2
     assert voted[1] < 0.03
+
+
+def test_a_frame_with_many_points_scores_its_samples_on_a_draw_and_agrees():
+    x, y, disparity, depth, true_depth, on = _scene(1, density=4)
+    assert len(x) > SCORE_POINTS  # the drawn scoring path
+    fit = fit_disparity(disparity, depth, weights=coverage_weights(x, y, WIDTH, HEIGHT))
+    exact = fit_disparity(disparity[~on], depth[~on])
+    error, exact_error = (np.abs(f.depth(disparity) / true_depth - 1.0) for f in (fit, exact))
+    assert np.median(error[on]) == pytest.approx(np.median(exact_error[on]), abs=0.02)
+    assert np.median(error[on]) < 0.2 and np.median(error[~on]) < 0.03
 
 
 def test_the_field_is_not_bent_toward_an_outlier_cluster():
