@@ -61,6 +61,8 @@ METHODS = {
     "reflow_masks8": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow",
                       "--mask_offsets", "-4", "-3", "-2", "-1", "1", "2", "3", "4"],
     # labels that change during the fine stage: residual votes every 100 iterations (estimated masks only)
+    "reflow_slow_masks": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow",
+                          "--mask_slow_offsets", "-8", "-6", "-4", "4", "6", "8"],
     "reflow_relabel": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow", "--relabel_every", "100"],
 }
 SCHEDULES = {

@@ -57,9 +57,12 @@ def dataset_masks(cameras: Sequence[Camera]) -> list[np.ndarray] | None:
 
 
 def _cache_key(cameras: Sequence[Camera], with_depth: bool, offsets: Sequence[int] = DEFAULT_OFFSETS,
-               depths: Sequence[np.ndarray] | None = None) -> str:
+               depths: Sequence[np.ndarray] | None = None, slow_offsets: Sequence[int] = ()) -> str:
     # the default offsets leave the key as it was (masks cached by earlier runs stay valid)
     extra = "" if tuple(offsets) == DEFAULT_OFFSETS else f"|offsets={','.join(map(str, offsets))}"
+    if slow_offsets:
+        slow = MotionMaskOptions(slow_offsets=tuple(slow_offsets))
+        extra += f"|slow={','.join(map(str, slow_offsets))}|{slow.slow_min_error_px}|{slow.slow_gate}"
     h = hashlib.sha256(f"v{CACHE_VERSION}|depth={with_depth}{extra}".encode())
     for cam in cameras:
         h.update(f"{cam.image_name}|{cam.width}x{cam.height}|".encode())
@@ -72,11 +75,13 @@ def _cache_key(cameras: Sequence[Camera], with_depth: bool, offsets: Sequence[in
 
 def estimated_masks(cameras: Sequence[Camera], cache_dir: Path | None,
                     depths: Sequence[np.ndarray] | None = None,
-                    offsets: Sequence[int] = DEFAULT_OFFSETS) -> list[np.ndarray]:
+                    offsets: Sequence[int] = DEFAULT_OFFSETS,
+                    slow_offsets: Sequence[int] = ()) -> list[np.ndarray]:
     """Masks from flow vs cameras (sorted by time for the pairing; each frame tested against the
-    frames `offsets` away in that order), cached under `cache_dir`."""
+    frames `offsets` away in that order), cached under `cache_dir`. `slow_offsets`: the second,
+    slow-motion pairing (baselines.data.motion_masks, MotionMaskOptions.slow_offsets; empty: off)."""
     order = sorted(range(len(cameras)), key=lambda i: (cameras[i].time, cameras[i].frame_index))
-    key = _cache_key(cameras, depths is not None, offsets, depths)
+    key = _cache_key(cameras, depths is not None, offsets, depths, slow_offsets)
     folder = None if cache_dir is None else Path(cache_dir) / "motion_masks"
     if folder is not None and (folder / "key.json").is_file():
         try:
@@ -92,8 +97,9 @@ def estimated_masks(cameras: Sequence[Camera], cache_dir: Path | None,
     Ks = [_np(cameras[i].K) for i in order]
     viewmats = [_np(cameras[i].viewmat) for i in order]
     ordered_depths = None if depths is None else [depths[i] for i in order]
-    ordered, report = estimate_motion_masks(images, Ks, viewmats, ordered_depths,
-                                            MotionMaskOptions(offsets=tuple(int(o) for o in offsets)))
+    options = MotionMaskOptions(offsets=tuple(int(o) for o in offsets),
+                                slow_offsets=tuple(int(o) for o in slow_offsets))
+    ordered, report = estimate_motion_masks(images, Ks, viewmats, ordered_depths, options)
     masks: list[np.ndarray] = [None] * len(cameras)  # type: ignore[list-item]
     for rank, index in enumerate(order):
         masks[index] = ordered[rank]
@@ -111,9 +117,10 @@ def estimated_masks(cameras: Sequence[Camera], cache_dir: Path | None,
 
 def training_masks(cameras: Sequence[Camera], source: str, cache_dir: Path | None,
                    depths: Sequence[np.ndarray] | None = None,
-                   offsets: Sequence[int] = DEFAULT_OFFSETS) -> tuple[list[np.ndarray] | None, str]:
+                   offsets: Sequence[int] = DEFAULT_OFFSETS,
+                   slow_offsets: Sequence[int] = ()) -> tuple[list[np.ndarray] | None, str]:
     """(masks or None, where they came from) for `source` in auto | masks | estimate | none;
-    `offsets`: the estimate's frame pairing (`estimated_masks`)."""
+    `offsets`, `slow_offsets`: the estimate's frame pairings (`estimated_masks`)."""
     if source == "none":
         return None, "none"
     from_dataset = dataset_masks(cameras)
@@ -131,7 +138,7 @@ def training_masks(cameras: Sequence[Camera], source: str, cache_dir: Path | Non
         return from_dataset, "dataset"
     if len(cameras) < 2:
         return None, "none (a single view has no flow to test)"
-    return estimated_masks(cameras, cache_dir, depths, offsets), "estimated"
+    return estimated_masks(cameras, cache_dir, depths, offsets, slow_offsets), "estimated"
 
 
 def aligned_depths(cameras: Sequence[Camera], static_points: np.ndarray,

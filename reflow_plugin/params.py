@@ -50,6 +50,10 @@ def _nonzero_ints(value: list[int]) -> str | None:
     return None
 
 
+def _nonzero_ints_or_none(value: list[int]) -> str | None:
+    return _nonzero_ints(value) if value else None
+
+
 @dataclass
 class ReFlowParams:
     """Weights, schedule and options of ReFlow (paper sections 3.2-3.4, appendix A)."""
@@ -167,6 +171,12 @@ class ReFlowParams:
                                                     "(the per-pixel median over the pairs is thresholded; "
                                                     "wider offsets see slow motion, e.g. an object turning "
                                                     "in place)", check=_nonzero_ints)
+    mask_slow_offsets: list[int] = param([], "estimated motion masks, ours, optional: a second test against "
+                                             "the frames this many places away (e.g. -8 -6 -4 4 6 8; 2 px of "
+                                             "raw error needed), adding the pixels it flags that the first "
+                                             "does not call static: objects that move a fraction of a pixel "
+                                             "per frame (empty: off)",
+                                         check=_nonzero_ints_or_none)
     label_vote: float = param(0.5, "an initial point is dynamic when it lies inside the motion mask in at "
                                    "least this fraction of the training views that see it", check=_fraction)
     promote_residual: float = param(0.0, "ours, optional: with ESTIMATED masks, at the start of the fine stage "

@@ -226,7 +226,8 @@ class ReFlowPlugin(Plugin):
     def initial_point_cloud(self, ctx) -> PointCloud | None:
         cameras = self.depth_cameras = self._corrected_disparity(ctx)
         masks, source = training_masks(cameras, self.p.label_source, self._run_dir(ctx),
-                                       aligned_depths(cameras, _metric_points(ctx)), self.p.mask_offsets)
+                                       aligned_depths(cameras, _metric_points(ctx)), self.p.mask_offsets,
+                                       self.p.mask_slow_offsets)
         self.masks, self.info["mask_source"] = masks, source
         if masks is not None:
             self.mask_tensors = {c.uid: torch.from_numpy(m).to(ctx.device) for c, m in zip(cameras, masks)}

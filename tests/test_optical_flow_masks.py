@@ -180,3 +180,38 @@ def test_mask_offsets_reach_the_estimate_and_its_cache_key(balloon, tmp_path, mo
     assert any((w != d).any() for w, d in zip(wide, default))
     labels.estimated_masks(cameras, tmp_path, depths)
     assert len(seen) == 2  # the same pairing is read from the cache
+
+
+def test_a_slow_object_is_found_by_the_slow_pairing_only(tmp_path):
+    """An object moving 0.5 px per frame in front of a still camera: the frames 1-2 apart see 0.75 px
+    of motion in the median over the pairs (under the 1 px needed: nothing flagged); the slow
+    pairing (frames 4-8 apart, median 2.5 px, 2 px needed) finds it and adds nothing on the still
+    background. Its cache key differs from the default's."""
+    import torch
+
+    from reflow_plugin import labels
+
+    rng = np.random.default_rng(0)
+    background = cv2.GaussianBlur(rng.uniform(0, 1, (72, 96, 3)).astype(np.float32), (0, 0), 1.0)
+    patch = cv2.GaussianBlur(rng.uniform(0, 1, (20, 20, 3)).astype(np.float32), (0, 0), 1.0)
+    frames, truth = 17, []
+    images = []
+    for k in range(frames):
+        shift = np.float32([[1, 0, 30 + 0.5 * k], [0, 1, 26]])  # sub-pixel motion, bilinear
+        layer = cv2.warpAffine(patch, shift, (96, 72), flags=cv2.INTER_LINEAR)
+        alpha = cv2.warpAffine(np.ones((20, 20), np.float32), shift, (96, 72), flags=cv2.INTER_LINEAR)[..., None]
+        images.append(alpha * layer + (1 - alpha) * background)
+        truth.append(alpha[..., 0] > 0.5)
+    K = np.array([[80.0, 0, 48], [0, 80.0, 36], [0, 0, 1]])
+    cameras = [SimpleNamespace(image=torch.from_numpy(im), K=torch.from_numpy(K),
+                               viewmat=torch.eye(4, dtype=torch.float64), time=k / (frames - 1), frame_index=k,
+                               image_name=f"{k:03d}", width=96, height=72)
+               for k, im in enumerate(images)]
+    fast = labels.estimated_masks(cameras, None)
+    both = labels.estimated_masks(cameras, None, slow_offsets=(-8, -6, -4, 4, 6, 8))
+    middle = range(4, 13)
+    assert sum(int((fast[k] & truth[k]).sum()) for k in middle) < 0.05 * sum(int(truth[k].sum()) for k in middle)
+    found = sum(int((both[k] & truth[k]).sum()) for k in middle) / sum(int(truth[k].sum()) for k in middle)
+    wrong = sum(int((both[k] & ~truth[k]).sum()) for k in middle) / sum(int((~truth[k]).sum()) for k in middle)
+    assert found > 0.5 and wrong < 0.02, (found, wrong)
+    assert labels._cache_key(cameras, False) != labels._cache_key(cameras, False, slow_offsets=(-4, 4))

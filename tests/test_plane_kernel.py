@@ -70,9 +70,14 @@ def test_kernel_equals_torch_path_on_hexplane_layouts(compiled, monkeypatch, dty
     want, want_grads = _values_and_grads("torch", monkeypatch, table, layout, coords)
     got, got_grads = _values_and_grads("kernel", monkeypatch, table, layout, coords)
     tol = {"rtol": 1e-5, "atol": 1e-6} if dtype == torch.float32 else {"rtol": 1e-12, "atol": 1e-12}
+    # A coordinate's gradient sums channels x corners x planes float32 products; the two paths (and
+    # torch's own reductions, whose order depends on the threads free at the time) add them in
+    # different orders, so a near-zero sum of O(1) terms differs by a few ulps of the TERMS: measured
+    # up to 1.9e-6 on a loaded 2-core machine. Values sum a few corners per plane: the tight bound holds.
+    grad_tol = {"rtol": 1e-5, "atol": 1e-5} if dtype == torch.float32 else tol
     torch.testing.assert_close(got, want, **tol)
     for name, g, w in zip(("table", "space", "time"), got_grads, want_grads):
-        torch.testing.assert_close(g, w, **tol, msg=lambda m, name=name: f"{name} gradient: {m}")
+        torch.testing.assert_close(g, w, **grad_tol, msg=lambda m, name=name: f"{name} gradient: {m}")
 
 
 def test_kernel_handles_one_wide_and_one_high_planes_and_groups_of_one(compiled, monkeypatch):

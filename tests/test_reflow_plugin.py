@@ -41,6 +41,9 @@ def test_bad_input_is_rejected_before_training(tiny_scene, tmp_path, capsys):
     with pytest.raises(SystemExit) as stop:  # a bad flag value: argparse's one-line error, exit code 2
         build_trainer(_argv(tiny_scene, tmp_path / "b", 1, 1, "--lambda_ff", "-1"))
     assert stop.value.code == 2 and "--lambda_ff: must be >= 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stop:  # a zero offset pairs a frame with itself
+        build_trainer(_argv(tiny_scene, tmp_path / "b", 1, 1, "--mask_slow_offsets", "-4", "0"))
+    assert stop.value.code == 2 and "--mask_slow_offsets: must be" in capsys.readouterr().err
     config = tmp_path / "bad.py"
     config.write_text("ReFlowParams = dict(lambda_cf=-0.5)\n")
     with pytest.raises(ConfigError, match="lambda_cf"):
