@@ -118,6 +118,12 @@ def weighted_median(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
     return np.take_along_axis(ordered, np.minimum(below, values.shape[-1] - 1)[..., None], -1)[..., 0]
 
 
+def tukey_weights(residuals: np.ndarray, sigma: float) -> np.ndarray:
+    """Tukey biweight [K] of residuals [K] at robust scale `sigma` (0 beyond TUKEY sigmas)."""
+    u = np.asarray(residuals) / (TUKEY * max(sigma, 1e-3))
+    return np.where(np.abs(u) < 1.0, (1.0 - u ** 2) ** 2, 0.0)
+
+
 def _residual(d: np.ndarray, z: np.ndarray, s: float, o: float) -> np.ndarray:
     return (s * d + o) * z - 1.0
 
@@ -178,9 +184,7 @@ def fit_disparity(disparity: np.ndarray, depth: np.ndarray, iterations: int = 10
     sigma = 1.4826 * (1.0 + 5.0 / max(len(d) - 2, 1)) * start_cost + 1e-9
     refined = (s, o)
     for _ in range(iterations):  # Tukey biweight IRLS (redescending: far points get no weight)
-        r = _residual(d, z, *refined)
-        u = r / (TUKEY * max(sigma, 1e-3))
-        w = np.where(np.abs(u) < 1.0, (1.0 - u ** 2) ** 2, 0.0) * votes
+        w = tukey_weights(_residual(d, z, *refined), sigma) * votes
         if (w > 0).sum() < MIN_POINTS:
             break
         solved = _weighted_solve(d, z, w)
@@ -330,4 +334,4 @@ def summary(fits: Sequence[FrameFit]) -> dict:
 
 __all__ = ["BOUNDS_SLACK", "FrameFit", "MAX_BEHIND", "MIN_POINTS", "bounds_fit", "camera_bounds", "coverage_weights",
            "fit_disparity", "fit_frames", "neighbour_fit", "project", "sparse_pairs", "sparse_votes", "summary",
-           "weighted_median"]
+           "tukey_weights", "weighted_median"]

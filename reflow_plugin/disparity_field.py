@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .disparity import TUKEY, coverage_weights, fit_disparity, project, weighted_median
+from .disparity import coverage_weights, fit_disparity, project, tukey_weights, weighted_median
 
 SMOOTH = 1e-3  # weight of the neighbouring-control differences
 SHRINK = 1e-5  # weight pulling every control value toward 0 (no correction)
@@ -87,8 +87,7 @@ def fit_field(weights: np.ndarray, residuals: np.ndarray, grid: int, votes: np.n
         A = (weights * w[:, None]).T @ weights / total + regulariser
         values = np.linalg.solve(A, (weights * w[:, None]).T @ residuals / total)
         if sigma is not None:
-            u = (residuals - weights @ values) / (TUKEY * max(sigma, 1e-3))
-            w = votes * np.where(np.abs(u) < 1.0, (1.0 - u ** 2) ** 2, 0.0)
+            w = votes * tukey_weights(residuals - weights @ values, sigma)
     return values
 
 

@@ -226,7 +226,8 @@ def masks_from_pair_errors(images: Sequence[np.ndarray], pair_error: PairError,
         if options.slow_offsets:
             slow, slow_raw, _ = _frame_scores(images, a, options.slow_offsets, pair_error, options.min_scale_px)
             # slow motion: flagged over frames far apart, and not quite static between near ones
-            moving |= (slow > options.threshold) & (slow_raw > options.slow_min_error_px) & (score > options.slow_gate)
+            moving |= ((slow > options.threshold) & (slow_raw > options.slow_min_error_px)
+                       & (score > options.slow_gate))
         mask = clean_mask(moving, options) if pairs else np.zeros(shape, bool)
         masks.append(mask)
         report.coverage.append(float(mask.mean()))
