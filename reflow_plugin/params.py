@@ -50,8 +50,11 @@ def _nonzero_ints(value: list[int]) -> str | None:
     return None
 
 
-def _nonzero_ints_or_none(value: list[int]) -> str | None:
-    return _nonzero_ints(value) if value else None
+def _slow_offsets(value: list[int]) -> str | None:
+    if value == [0] or not value:  # 0 alone: the slow pairing off
+        return None
+    problem = _nonzero_ints(value)
+    return problem and f"{problem} (or 0 alone: off)"
 
 
 @dataclass
@@ -171,12 +174,13 @@ class ReFlowParams:
                                                     "(the per-pixel median over the pairs is thresholded; "
                                                     "wider offsets see slow motion, e.g. an object turning "
                                                     "in place)", check=_nonzero_ints)
-    mask_slow_offsets: list[int] = param([], "estimated motion masks, ours, optional: a second test against "
-                                             "the frames this many places away (e.g. -8 -6 -4 4 6 8; 2 px of "
-                                             "raw error needed), adding the pixels it flags that the first "
-                                             "does not call static: objects that move a fraction of a pixel "
-                                             "per frame (empty: off)",
-                                         check=_nonzero_ints_or_none)
+    mask_slow_offsets: list[int] = param([-8, -6, -4, 4, 6, 8],
+                                         "estimated motion masks, ours: a second test against the frames "
+                                         "this many places away (2 px of raw error needed), adding the "
+                                         "pixels it flags that the first does not call static: objects that "
+                                         "move a fraction of a pixel per frame, e.g. an umbrella turning in "
+                                         "place; 0 = off (the first test alone)",
+                                         check=_slow_offsets)
     label_vote: float = param(0.5, "an initial point is dynamic when it lies inside the motion mask in at "
                                    "least this fraction of the training views that see it", check=_fraction)
     promote_residual: float = param(0.0, "ours, optional: with ESTIMATED masks, at the start of the fine stage "

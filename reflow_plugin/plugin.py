@@ -227,7 +227,7 @@ class ReFlowPlugin(Plugin):
         cameras = self.depth_cameras = self._corrected_disparity(ctx)
         masks, source = training_masks(cameras, self.p.label_source, self._run_dir(ctx),
                                        aligned_depths(cameras, _metric_points(ctx)), self.p.mask_offsets,
-                                       self.p.mask_slow_offsets)
+                                       self.slow_mask_offsets())
         self.masks, self.info["mask_source"] = masks, source
         if masks is not None:
             self.mask_tensors = {c.uid: torch.from_numpy(m).to(ctx.device) for c, m in zip(cameras, masks)}
@@ -236,6 +236,10 @@ class ReFlowPlugin(Plugin):
             if cloud is not None:
                 return cloud
         return self._host_cloud(ctx, masks, source)
+
+    def slow_mask_offsets(self) -> tuple[int, ...]:
+        """The estimated masks' slow-motion pairing (`--mask_slow_offsets`; 0 alone = off: empty)."""
+        return tuple(int(o) for o in self.p.mask_slow_offsets if o != 0)
 
     def _corrected_disparity(self, ctx) -> list:
         """The training cameras, their disparity with the smooth per-frame correction (disparity_field.py)

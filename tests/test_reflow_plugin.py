@@ -55,6 +55,14 @@ def test_bad_input_is_rejected_before_training(tiny_scene, tmp_path, capsys):
     assert not (tmp_path / "c").exists()
 
 
+def test_slow_mask_pairing_is_on_by_default_and_0_turns_it_off(tiny_scene, tmp_path):
+    assert ReFlowPlugin().slow_mask_offsets() == (-8, -6, -4, 4, 6, 8)
+    off = build_trainer(_argv(tiny_scene, tmp_path / "off", 1, 1, "--mask_slow_offsets", "0"))
+    assert off.hooks.plugins[0].slow_mask_offsets() == ()
+    wide = build_trainer(_argv(tiny_scene, tmp_path / "wide", 1, 1, "--mask_slow_offsets", "-5", "5"))
+    assert wide.hooks.plugins[0].slow_mask_offsets() == (-5, 5)
+
+
 def test_pair_sampler_and_curriculum():
     cams = [types.SimpleNamespace(time=t, frame_index=i) for i, t in enumerate(np.linspace(0, 1, 10))][::-1]
     sampler = PairSampler(cams, window=2, seed=0)
