@@ -17,6 +17,7 @@ from typing import Any
 from .fields import param
 
 BACKENDS = ("auto", "cpu", "reference", "gsplat")
+MLP_PRECISIONS = ("auto", "float32", "bfloat16")
 DATASET_TYPES = ("auto", "nvidia", "dnerf", "hypernerf", "colmap", "synthetic")
 KPLANES_KEYS = ("grid_dimensions", "input_coordinate_dim", "output_coordinate_dim", "resolution")
 
@@ -154,6 +155,11 @@ class ModelHiddenParams:
         check=_check_kplanes)
     multires: list[int] = param([1, 2, 4, 8], "spatial resolution multipliers of the HexPlane "
                                               "levels", check=_check_multires)
+    mlp_precision: str = param("auto", "number format of the deformation MLP's matrix products: "
+                                       "float32, bfloat16 (weights stay float32, autocast) or auto "
+                                       "(bfloat16 on a CPU with native bfloat16 dot products, e.g. "
+                                       "AMX or AVX512-BF16; float32 elsewhere)", ours=True,
+                               choices=MLP_PRECISIONS)
     no_dx: bool = param(False, "disable the deformation of positions")
     no_grid: bool = param(False, "feed time and position to the MLP instead of HexPlane features")
     no_ds: bool = param(False, "disable the deformation of scales")

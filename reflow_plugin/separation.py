@@ -45,7 +45,7 @@ from torch import Tensor, nn
 from baselines.fourdgs.deformation import DeformNetwork
 from baselines.fourdgs.hexplane import PLANE_AXES
 from baselines.fourdgs.plane_lookup import PlaneLayout, plane_product_lookup, planes_to_table
-from baselines.fourdgs.state import GaussianState
+from baselines.fourdgs.state import STATE_FIELDS, GaussianState
 
 SPATIAL_PLANE_INDICES = tuple(i for i, axes in enumerate(PLANE_AXES) if 3 not in axes)  # xy, xz, yz
 TIME_CENTER = "reflow_time_center"  # [N, 1] buffer: the time a dynamic Gaussian was seeded at
@@ -147,17 +147,17 @@ class SeparatedDeformation(DeformNetwork):
         if deformed.numel() == n and not relative:
             out = super().forward(out, field_times)
         elif deformed.numel() > 0:  # none alive at t (every copy culled): nothing to deform
+            rows = out.index(deformed)
             if relative and self.anchored:
-                moved = self._anchored_forward(out.index(deformed), field_times[deformed])
+                moved = self._anchored_forward(rows, field_times[deformed])
             else:
-                moved = super().forward(out.index(deformed), field_times[deformed])
-            out = GaussianState(
-                out.means.index_copy(0, deformed, moved.means),
-                out.log_scales.index_copy(0, deformed, moved.log_scales),
-                out.rotations.index_copy(0, deformed, moved.rotations),
-                out.opacity_logits.index_copy(0, deformed, moved.opacity_logits),
-                out.shs.index_copy(0, deformed, moved.shs),
-            )
+                moved = super().forward(rows, field_times[deformed])
+            # A field the network passed through (4DGS's disabled heads: SH, opacity) keeps `out`'s
+            # tensor: no copy forward, no scatter of a [N, 16, 3] gradient backward (same values).
+            out = GaussianState(*(
+                getattr(out, name) if getattr(moved, name) is getattr(rows, name)
+                else getattr(out, name).index_copy(0, deformed, getattr(moved, name))
+                for name in STATE_FIELDS))
         if centers is not None and log_scales is not None:
             logits = temporal_window(out.opacity_logits[dynamic], times[dynamic].to(centers.dtype),
                                      centers[dynamic], log_scales[dynamic])
@@ -178,16 +178,15 @@ class SeparatedDeformation(DeformNetwork):
         rotation delta, so this is exact there).
         """
         m = state.num_gaussians
-        both = super().forward(state.index(torch.cat((torch.arange(m, device=taus.device),) * 2)),
-                               torch.cat((taus, torch.zeros_like(taus))))
+        doubled = state.index(torch.cat((torch.arange(m, device=taus.device),) * 2))
+        both = super().forward(doubled, torch.cat((taus, torch.zeros_like(taus))))
         at, zero = both.index(slice(0, m)), both.index(slice(m, 2 * m))
-        return GaussianState(
-            state.means + (at.means - zero.means),
-            state.log_scales + (at.log_scales - zero.log_scales),
-            state.rotations + (at.rotations - zero.rotations),
-            state.opacity_logits + (at.opacity_logits - zero.opacity_logits),
-            state.shs + (at.shs - zero.shs),
-        )
+        # a field the network passed through has at - zero = 0 exactly: it is `state`'s own tensor
+        # (the identity keeps the forward and backward work off SH and opacity)
+        return GaussianState(*(
+            getattr(state, name) if getattr(both, name) is getattr(doubled, name)
+            else getattr(state, name) + (getattr(at, name) - getattr(zero, name))
+            for name in STATE_FIELDS))
 
     def _decode_static(self, state: GaussianState, rows: Tensor) -> GaussianState:
         deltas = self.static_decoder(state.means[rows])

@@ -165,6 +165,25 @@ def test_deform_many_equals_one_deform_per_time_values_and_gradients():
         _assert_states_close(got, model.deform(t, "fine"))
 
 
+def test_fields_the_deformation_passes_through_stay_the_canonical_tensor_with_equal_gradients():
+    """4DGS's disabled heads (SH, opacity) leave those fields as they are: deform_many hands every
+    time the canonical tensor itself (no [kN] slices), with the per-time call's values and gradients."""
+    times = (0.2, 0.9)
+    model = model_with_time_dependent_planes()
+    model.training_setup(opt_args())
+    many = model.deform_many(times, "fine")
+    assert many[0].shs is many[1].shs and many[0].opacity_logits is many[1].opacity_logits
+    assert many[0].means is not many[1].means
+
+    def grads(states) -> list[torch.Tensor]:
+        loss = sum((k + 1) * (s.shs.square().sum() + s.opacity_logits.sum() + s.means.sum())
+                   for k, s in enumerate(states))
+        return torch.autograd.grad(loss, [model._features_dc, model._features_rest, model._opacity, model._xyz])
+
+    for got, expected in zip(grads(model.deform_many(times, "fine")), grads([model.deform(t, "fine") for t in times])):
+        torch.testing.assert_close(got, expected, atol=1e-5, rtol=1e-5)
+
+
 def test_deform_passes_registered_buffers_to_the_module():
     seen = {}
 

@@ -175,4 +175,7 @@ def test_deform_many_keeps_keyframe_windows_and_anchors_of_every_time():
         for field in ("means", "log_scales", "rotations", "opacity_logits"):
             torch.testing.assert_close(getattr(got, field), getattr(expected, field), atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(many[0].means[~table], model.get_xyz[~table])  # static rows untouched
+    # SH is no head of the network: every time shares the canonical tensor (no copy, no scatter)
+    assert many[0].shs is many[1].shs
+    torch.testing.assert_close(many[0].shs, model.deform(times[0], "fine").shs)
     assert (many[0].opacity_logits != many[1].opacity_logits).any()  # windows depend on the time

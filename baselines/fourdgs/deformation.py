@@ -72,6 +72,7 @@ HIDDEN_DEFAULTS: dict[str, Any] = {
     "grid_pe": 0,
     "static_mlp": False,
     "apply_rotation": False,
+    "mlp_precision": "float32",  # ours (4DGS: float32); see mlp_autocast
 }
 
 
@@ -106,6 +107,28 @@ class DeformationModule(Protocol):
 def hidden_value(args: Any, name: str) -> Any:
     """``args.name``, else 4DGS's default (so any object with the 4DGS attributes works)."""
     return getattr(args, name, HIDDEN_DEFAULTS[name]) if args is not None else HIDDEN_DEFAULTS[name]
+
+
+def native_bfloat16_cpu() -> bool:
+    """Whether this CPU multiplies bfloat16 natively (AVX512-BF16 or AMX), where oneDNN's bfloat16
+    matrix products run 5-10x faster than float32 ones; without it they are emulated and slower."""
+    checks = [getattr(torch.cpu, name, None) for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported")]
+    return any(check is not None and bool(check()) for check in checks)
+
+
+def mlp_autocast(precision: str, device: torch.device) -> torch.autocast:
+    """The autocast context for the deformation MLP's matrix products on ``device``.
+
+    ``bfloat16``: the Linear layers compute in bfloat16 (float32 weights and optimizer state, as
+    in mixed-precision training; the grid lookup, the residual additions and everything after the
+    heads stay float32). ``auto`` picks bfloat16 only on a CPU that computes it natively: there
+    the MLP is most of a training step at real-capture scale (about 40% of a fine iteration at
+    33k Gaussians, 240x135, docs/PROFILE.md). ``float32`` is 4DGS's arithmetic.
+    """
+    if precision not in ("auto", "float32", "bfloat16"):
+        raise ValueError(f"mlp_precision must be auto, float32 or bfloat16, got {precision!r}")
+    use_bf16 = precision == "bfloat16" or (precision == "auto" and device.type == "cpu" and native_bfloat16_cpu())
+    return torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16)
 
 
 def quaternion_multiply(q1: Tensor, q2: Tensor) -> Tensor:
@@ -163,6 +186,8 @@ class Deformation(nn.Module):
         self.no_grid = bool(hidden_value(args, "no_grid"))
         self.flags = {flag: bool(hidden_value(args, flag)) for _, _, flag in _HEADS}
         self.apply_rotation = bool(hidden_value(args, "apply_rotation"))
+        self.mlp_precision = str(hidden_value(args, "mlp_precision"))
+        mlp_autocast(self.mlp_precision, torch.device("cpu"))  # reject an unknown value now
         self.grid = HexPlaneField(
             hidden_value(args, "bounds"), hidden_value(args, "kplanes_config"), hidden_value(args, "multires")
         )
@@ -211,19 +236,22 @@ class Deformation(nn.Module):
             if self.grid_pe > 1:
                 scaled = features * self.grid_pe
                 features = torch.cat((features, scaled.sin(), scaled.cos()), 1)
-        return self.feature_out(features)
+        with mlp_autocast(self.mlp_precision, features.device):
+            return self.feature_out(features)
 
     def head_outputs(self, hidden: Tensor) -> dict[str, Tensor]:
         """Outputs of the enabled heads (their leading ReLU of ``hidden`` is computed once)."""
         names = self.active_heads()
         if not names:
             return {}
-        activated = F.relu(hidden)
         outputs = {}
-        for name in names:
-            head = getattr(self, name)
-            outputs[name] = head[3](F.relu(head[1](activated)))
-        return outputs
+        with mlp_autocast(self.mlp_precision, hidden.device):
+            activated = F.relu(hidden)
+            for name in names:
+                head = getattr(self, name)
+                outputs[name] = head[3](F.relu(head[1](activated)))
+        # bfloat16 outputs back to float32 (a float64 model stays float64)
+        return {name: out.to(torch.promote_types(out.dtype, torch.float32)) for name, out in outputs.items()}
 
     def forward(self, state: GaussianState, times: Tensor) -> GaussianState:
         deltas = self.head_outputs(self.hidden(state.means, times))

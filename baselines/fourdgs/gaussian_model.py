@@ -36,7 +36,7 @@ from torch import Tensor, nn
 from baselines.fourdgs.deformation import DeformNetwork, check_deformation_state
 from baselines.fourdgs.lr_schedule import get_expon_lr_func
 from baselines.fourdgs.optimizer_state import check_state_by_group_name, load_state_by_group_name, swap_group_param
-from baselines.fourdgs.state import GaussianState
+from baselines.fourdgs.state import STATE_FIELDS, GaussianState
 
 SH_C0 = 0.28209479177387814
 TIME_OUTSIDE_MODES = ("extrapolate", "hold", "linear")  # see GaussianModel.set_time_span
@@ -571,7 +571,11 @@ class GaussianModel:
         # per-Gaussian inputs (registered buffers, deformation_table) follow the repeated rows
         inputs = {name: torch.cat([value] * len(times)) for name, value in self.deformation_inputs().items()}
         out = self._deformation(repeated, column, inputs)
-        return [out.index(slice(k * count, (k + 1) * count)) for k in range(len(times))]
+        # A field the module passed through unchanged (4DGS's disabled heads: SH, opacity) is the
+        # canonical tensor at every time: its gradient then reaches the parameter directly instead
+        # of through k slices and a concatenation of [kN, ...] zeros (same values and gradients).
+        kept = {name: getattr(state, name) for name in STATE_FIELDS if getattr(out, name) is getattr(repeated, name)}
+        return [out.index(slice(k * count, (k + 1) * count)).replace(**kept) for k in range(len(times))]
 
     @property
     def deformation_table(self) -> Tensor:

@@ -16,7 +16,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-_FIELDS = ("means", "log_scales", "rotations", "opacity_logits", "shs")
+STATE_FIELDS = ("means", "log_scales", "rotations", "opacity_logits", "shs")  # GaussianState's field order
+_FIELDS = STATE_FIELDS
 
 
 @dataclass(frozen=True)
