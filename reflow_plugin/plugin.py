@@ -25,8 +25,8 @@ Hook by hook (order of hooks.py):
     loss_weights         coarse stage: the baseline loss skips motion-mask pixels (static scene first)
     extra_losses         ff_mc, ff_cr, cf_mc, cf_cr (matching.py); ext (external.py, ext_flow)
     post_backward        coarse stage: dynamic Gaussians' gradients zeroed (frozen)
-    protected_gaussians  dynamic Gaussians never pruned (protect_dynamic)
-    on_iteration_end     warm-up unfreeze; flow-matching panels (flow_vis_every)
+    protected_gaussians  dynamic Gaussians never pruned
+    on_iteration_end     flow-matching panels (flow_vis_every)
     on_load              a 4DGS folder (--start_checkpoint): labels from deformation magnitude (upgrade.py)
     on_stage_end         fine stage: flow metrics against ground truth when the dataset has it
 
@@ -57,8 +57,8 @@ from .flow import camera_motion_pixels, flow_features, full_flow
 from .labels import aligned_depths, training_masks, vote_labels
 from .matching import DYNAMIC_KEY, FLOW_KEY, FlowPair, MatchingConfig, dynamic_share, flow_losses
 from .pairs import PairSampler, curriculum_radius
-from .params import ReFlowParams
-from .promotion import ResidualVotes, missed_motion_maps, promoted_gaussians
+from .params import (DYNAMIC_AABB_MARGIN, DYNAMIC_INIT_OPACITY, FLOW_MIN_ALPHA, OCCLUSION_ALPHA1, OCCLUSION_ALPHA2,
+                     PHOTO_SSIM_WEIGHT, TIME_SCALE_LR, WINDOW_CULL, ReFlowParams)
 from .seeding import BACKGROUND_FACTOR, keyframes, reference_frame, ring_depth, seed_dynamic_points, window_scale
 from .separation import TIME_CENTER, TIME_LOG_SCALE, SeparatedDeformation
 from .upgrade import upgrade_4dgs_model, written_by_reflow
@@ -101,7 +101,6 @@ class ReFlowPlugin(Plugin):
         self.p: ReFlowParams = self.params.get("ReFlowParams") or ReFlowParams()
         self.sampler: PairSampler | None = None
         self.masks: list[np.ndarray] | None = None  # per training camera (uid order), True = dynamic
-        self.coarse_fitted = False  # a coarse stage ran in this process (promotion reads its fit)
         self.depth_cameras: list = []  # the training cameras as the depth steps read them (initial_point_cloud)
         self.mask_tensors: dict[int, Tensor] = {}
         self.labels: np.ndarray | None = None  # per initial point, True = dynamic
@@ -112,14 +111,14 @@ class ReFlowPlugin(Plugin):
         self.info: dict[str, Any] = {}
         self.config = MatchingConfig(
             lambda_ff=self.p.lambda_ff, lambda_cf=self.p.lambda_cf, lambda_mc=self.p.lambda_mc,
-            cross_time_ratio=self.p.cross_time_ratio, ssim_weight=self.p.photo_ssim_weight,
-            min_alpha=self.p.flow_min_alpha, blur_sigmas=tuple(self.p.flow_blur_sigmas),
-            occlusion=self.is_enabled("occlusion"), occlusion_alpha1=self.p.occlusion_alpha1,
-            occlusion_alpha2=self.p.occlusion_alpha2, cam_occlusion=self.is_enabled("cam_occlusion"),
+            cross_time_ratio=self.p.cross_time_ratio, ssim_weight=PHOTO_SSIM_WEIGHT,
+            min_alpha=FLOW_MIN_ALPHA, blur_sigmas=tuple(self.p.flow_blur_sigmas),
+            occlusion=self.is_enabled("occlusion"), occlusion_alpha1=OCCLUSION_ALPHA1,
+            occlusion_alpha2=OCCLUSION_ALPHA2, cam_occlusion=self.is_enabled("cam_occlusion"),
             # without separation there is no static/dynamic model to split the pixels by: all pixels
             full_flow_dynamic_only=self.p.full_flow_region == "dynamic" and self.is_enabled("separation"),
             full_flow_min_share=self.p.full_flow_min_share,
-            cam_target_static=self.p.cam_flow_target_static, blur_dynamic_only=self.p.flow_blur_region == "dynamic")
+            cam_target_static=True)  # the paper masks both sides (measured neutral: +0.02 dB)
         self._blur_cache: dict[tuple[str, float], Tensor] = {}
         self._camera_motion: dict[tuple[int, int], float] = {}
         self._any_dynamic: tuple[Tensor, bool] | None = None  # (labels tensor, any dynamic): _has_dynamic
@@ -128,7 +127,6 @@ class ReFlowPlugin(Plugin):
         self._run_dir_path = Path(".")
         self._last = None
         self.external: ExternalFlowCache | None = None
-        self.relabel = ResidualVotes(self.p.relabel_residual) if self.p.relabel_every > 0 else None
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -409,8 +407,8 @@ class ReFlowPlugin(Plugin):
     def build_model(self, ctx) -> GaussianModel | None:
         if not self.is_enabled("separation"):
             return None
-        deformation = SeparatedDeformation(ctx.args.hidden, self.p.static_decoder, self.p.dynamic_zero_init,
-                                           self.p.relative_time, self.p.anchor_keyframes, self.p.window_cull)
+        deformation = SeparatedDeformation(ctx.args.hidden, self.p.static_decoder, zero_init=True, relative_time=True,
+                                           anchored=True, window_cull=WINDOW_CULL)
         return GaussianModel(ctx.args.model.sh_degree, ctx.args.hidden, deformation=deformation)
 
     def on_model_created(self, ctx) -> None:
@@ -422,13 +420,13 @@ class ReFlowPlugin(Plugin):
         self.info["labels"] = {"dynamic": dynamic, "static": model.num_gaussians - dynamic}
         if dynamic and self.is_enabled("separation"):
             with torch.no_grad():
-                value = torch.logit(torch.tensor(self.p.dynamic_init_opacity).clamp(1e-4, 1 - 1e-4))
+                value = torch.logit(torch.tensor(DYNAMIC_INIT_OPACITY).clamp(1e-4, 1 - 1e-4))
                 model._opacity[model.deformation_table] = value
             self._register_windows(model)
         if self.is_enabled("separation"):
             self._scale_dynamic_branch(model)
             if dynamic:
-                model.deformation.fit_box(model.get_xyz.detach()[model.deformation_table], self.p.dynamic_aabb_margin)
+                model.deformation.fit_box(model.get_xyz.detach()[model.deformation_table], DYNAMIC_AABB_MARGIN)
             else:
                 log.warning("separation: no Gaussian is labelled dynamic, so the scene is modelled as static "
                             "(label_source=%s; motion masks: %s)", self.p.label_source, self.info.get("mask_source"))
@@ -437,8 +435,8 @@ class ReFlowPlugin(Plugin):
     def _scale_dynamic_branch(self, model: GaussianModel) -> None:
         """The dynamic branch's learning rates (`_dynamic_lr_multiplier`) and position scale.
 
-        Above the extent cap the rates stop growing with the extent; with `dynamic_scale_free` the
-        position deltas are multiplied by extent / cap instead (a reparametrisation, exact for the
+        Above the extent cap the rates stop growing with the extent; the position deltas are
+        multiplied by extent / cap instead (a reparametrisation, exact for the
         branch: its inputs are normalised to the dynamic box, its loss gradients scale as 1 / extent),
         so a scene at scale 50 trains its motion as the same scene at extent `cap` would, not 50x
         more slowly relative to its size (README, "Real priors": truck).
@@ -446,7 +444,7 @@ class ReFlowPlugin(Plugin):
         for group in ("deformation", "grid"):
             model.scale_learning_rate(group, self._dynamic_lr_multiplier(model))
         extent, cap = float(model.spatial_lr_scale), self.p.dynamic_lr_extent_cap
-        scale = extent / cap if self.p.dynamic_scale_free and cap > 0 and extent > cap else 1.0
+        scale = extent / cap if cap > 0 and extent > cap else 1.0
         net = getattr(model.deformation, "deformation_net", None)
         if net is not None and hasattr(net, "set_position_scale"):
             net.set_position_scale(scale)
@@ -473,7 +471,7 @@ class ReFlowPlugin(Plugin):
         log_scales = np.where(seeded, np.log(window_scale(self.keyframe_times)), np.log(1e3))
         model.register_gaussian_buffer(TIME_CENTER, torch.as_tensor(centers, dtype=torch.float32).unsqueeze(1))
         model.register_gaussian_parameter(TIME_LOG_SCALE, torch.as_tensor(log_scales, dtype=torch.float32).unsqueeze(1),
-                                          self.p.time_scale_lr)
+                                          TIME_SCALE_LR)
 
     @property
     def _uses_curriculum(self) -> bool:
@@ -500,81 +498,7 @@ class ReFlowPlugin(Plugin):
         z = means @ cam.viewmat[:3, :3].T[:, 2] + cam.viewmat[2, 3]
         z = z[z > 0]
         self.scene_depth = float(z.median()) if z.numel() else 1.0
-        if self.sampler is not None and self.p.pair_max_motion > 0 and self.sampler.motion is None:
-            self._limit_pair_motion(ctx.train_cameras)
-        if ctx.stage == "fine" and self.p.dynamic_warmup > 0 and self.is_enabled("separation"):
-            ctx.model.freeze(["deformation", "grid"])
-        self.coarse_fitted = self.coarse_fitted or (ctx.stage == "coarse" and ctx.args.opt.coarse_iterations > 0)
-        flagged = self._missed_motion(ctx)  # rendered while the dynamic Gaussians are still hidden
         self._hide_dynamic_in_coarse(ctx)
-        if flagged is not None:
-            self._promote(ctx, flagged)
-        if (ctx.stage == "fine" and self.p.box_labels and self.is_enabled("separation")
-                and self.info.get("mask_source") == "estimated"):
-            self._label_box(ctx)
-
-    def _label_box(self, ctx) -> None:
-        """`box_labels`: every Gaussian inside the dynamic branch's box becomes dynamic."""
-        model = ctx.model
-        high, low = model.deformation.get_aabb
-        means = model.get_xyz.detach()
-        inside = ((means >= low.to(means.device)) & (means <= high.to(means.device))).all(1)
-        before = int(model.deformation_table.sum())
-        model.set_deformation_table(model.deformation_table | inside.to(model.deformation_table.device))
-        self.info["box_labels"] = {"before": before, "dynamic": int(model.deformation_table.sum())}
-        log.info("box labels: %d -> %d dynamic Gaussians", before, self.info["box_labels"]["dynamic"])
-
-    def _missed_motion(self, ctx) -> list[np.ndarray] | None:
-        """Fine-stage start, estimated masks, `promote_residual` > 0: the coarse fit's flagged pixels."""
-        if (ctx.stage != "fine" or self.p.promote_residual <= 0 or not self.is_enabled("separation")
-                or self.masks is None or self.info.get("mask_source") != "estimated"
-                or not self.coarse_fitted):  # no coarse fit here (none asked, or resumed in the fine stage)
-            return None
-        return missed_motion_maps(ctx.model, ctx.train_cameras, self.masks, ctx.background,
-                                  self.p.promote_residual, backend=ctx.args.pipe.backend)
-
-    def _promote(self, ctx, flagged: list[np.ndarray]) -> None:
-        model = ctx.model
-        promoted = torch.from_numpy(promoted_gaussians(model, ctx.train_cameras, flagged, self.p.label_vote))
-        table = model.deformation_table.cpu() | promoted
-        model.set_deformation_table(table)
-        if bool(promoted.any()):
-            model.deformation.fit_box(model.get_xyz.detach()[model.deformation_table], self.p.dynamic_aabb_margin)
-        share = float(np.mean([f.mean() for f in flagged]))
-        self.info["promotion"] = {"promoted": int(promoted.sum()), "dynamic": int(table.sum()),
-                                  "flagged_pixel_share": share}
-        log.info("promotion: %d static Gaussians made dynamic (%.1f%% of unmasked pixels flagged by the coarse "
-                 "fit's residual)", int(promoted.sum()), 100 * share)
-        self._record(ctx)
-
-    def _relabel(self, ctx) -> None:
-        """Static Gaussians the residual votes call moving become dynamic (promotion.py: ResidualVotes)."""
-        model = ctx.model
-        promoted = self.relabel.promote(model, self.p.label_vote, self.p.relabel_min_views)
-        count = int(promoted.sum())
-        rounds = self.info.setdefault("relabel", [])
-        rounds.append({"iteration": ctx.iteration, "promoted": count})
-        if count:
-            model.set_deformation_table(model.deformation_table | promoted.to(model.deformation_table.device))
-            rounds[-1]["dynamic"] = int(model.deformation_table.sum())
-            log.info("relabel at fine iteration %d: %d static Gaussians made dynamic (%d dynamic now)",
-                     ctx.iteration, count, rounds[-1]["dynamic"])
-
-    def _limit_pair_motion(self, cameras) -> None:
-        """Partners only among frames whose cameras move at most pair_max_motion x the median motion
-        between neighbouring training frames (pairs.py: `limit_motion`)."""
-        n = len(cameras)
-        motion = np.zeros((n, n))
-        for i in range(n):
-            for j in range(n):
-                if i != j:
-                    motion[i, j] = camera_motion_pixels(cameras[j].K, cameras[i].viewmat, cameras[j].viewmat,
-                                                        self.scene_depth)
-        order = self.sampler.order
-        neighbours = [motion[order[p], order[p + 1]] for p in range(n - 1)]
-        limit = self.p.pair_max_motion * float(np.median(neighbours))
-        self.sampler.limit_motion(motion, limit)
-        self.info["pair_max_motion_px"] = limit
 
     def _hides_dynamic(self, ctx) -> bool:
         return HIDDEN_OPACITY in ctx.model.registered_buffers
@@ -583,7 +507,7 @@ class ReFlowPlugin(Plugin):
         """Coarse stage: dynamic Gaussians are made invisible (their opacity kept in a buffer that
         follows densification), so the static scene is fitted alone; the fine stage restores them."""
         model = ctx.model
-        if not self.is_enabled("separation") or not self.p.coarse_static_only:
+        if not self.is_enabled("separation"):
             return
         dynamic = model.deformation_table
         with torch.no_grad():
@@ -640,16 +564,14 @@ class ReFlowPlugin(Plugin):
                 continue
             if target is not None and self._full_now(ctx):
                 channels = flow_features(ctx.views[k].projection, target.projection)
-                if not self.p.full_flow_static_grad and self.is_enabled("separation"):
-                    channels = torch.where(self._dynamic(ctx).unsqueeze(1), channels, channels.detach())
                 features[FLOW_KEY] = channels
-            dynamic_terms = use_full and (self.config.full_flow_dynamic_only or self.config.blur_dynamic_only)
+            dynamic_terms = use_full and self.config.full_flow_dynamic_only
             if use_cam or dynamic_terms:
                 features[DYNAMIC_KEY] = self._dynamic(ctx).to(ctx.views[k].colors.dtype).unsqueeze(1)
         return features or None
 
     def loss_weights(self, ctx, view_index: int) -> Tensor | None:
-        if ctx.stage != "coarse" or not self.p.coarse_static_only or not self.mask_tensors:
+        if ctx.stage != "coarse" or not self.mask_tensors:
             return None
         mask = self.mask_tensors.get(ctx.views[view_index].camera.uid)
         return None if mask is None else (~mask).float().unsqueeze(-1)
@@ -704,41 +626,28 @@ class ReFlowPlugin(Plugin):
         terms = []
         for pair in pairs:
             a = pair.source
-            flow, valid = full_flow(a.extras[FLOW_KEY], a.alpha, self.p.flow_min_alpha)
+            flow, valid = full_flow(a.extras[FLOW_KEY], a.alpha, FLOW_MIN_ALPHA)
             flow_ext, confident = self.external.get(a.camera, pair.target)
             terms.append(external_flow_loss(flow, valid, flow_ext, confident))
         return torch.stack(terms).mean()
 
-    def _relabels(self, ctx) -> bool:
-        """`relabel_every`: fine stage, separation on, ESTIMATED masks (a dataset's masks are trusted)."""
-        return (self.relabel is not None and ctx.stage == "fine" and self.is_enabled("separation")
-                and self.info.get("mask_source") == "estimated")
-
     def post_backward(self, ctx) -> None:
         if not self.is_enabled("separation"):
             return
-        if self._relabels(ctx):  # before densification: the views' rows are the model's rows
-            for view in ctx.views:
-                self.relabel.accumulate(ctx.model, view, self.mask_tensors.get(view.camera.uid))
         settling = ctx.stage == "fine" and ctx.iteration <= self.p.dynamic_settle_fraction * ctx.stage_iterations
-        frozen = (ctx.stage == "coarse" and self.p.coarse_static_only) or settling
+        frozen = ctx.stage == "coarse" or settling
         dynamic = self._dynamic(ctx)
         if frozen and bool(dynamic.any()):
             ctx.model.zero_row_gradients(dynamic)
 
     def protected_gaussians(self, ctx) -> Tensor | None:
-        if self.p.protect_dynamic and self.is_enabled("separation"):
+        if self.is_enabled("separation"):
             return self._dynamic(ctx)
         return None
 
     def on_iteration_end(self, ctx) -> None:
         if ctx.stage != "fine":
             return
-        if (self._relabels(ctx) and ctx.iteration % self.p.relabel_every == 0
-                and ctx.iteration <= ctx.args.opt.densify_until_iter):
-            self._relabel(ctx)
-        if self.p.dynamic_warmup > 0 and ctx.iteration == self.p.dynamic_warmup and self.is_enabled("separation"):
-            ctx.model.unfreeze(["deformation", "grid"])
         every = self.p.flow_vis_every
         if every and self._last is not None and (ctx.iteration % every == 0 or ctx.iteration == ctx.stage_iterations):
             result, pairs = self._last
