@@ -22,7 +22,7 @@ from typing import Any
 
 from .config import load_configs, read_config_chain
 from .fields import CoercionError, FieldSpec, coerce, split_comma_list
-from .layers import ConfigError, Layer, Schema, build_schema, merge_layers, resolve, \
+from .layers import ConfigError, Layer, Schema, build_schema, merge_layers, removed_note, resolve, \
     warn_compat_fields
 from .params import (HOST_GROUPS, ModelHiddenParams, ModelParams, OptimizationParams,
                      PipelineParams, RenderParams, RunParams)
@@ -233,7 +233,7 @@ def _add_flag(group: argparse._ArgumentGroup, spec: FieldSpec) -> None:
 def _parse_cli(parser: argparse.ArgumentParser, schema: Schema, argv: list[str]) -> Layer:
     ns, unknown = parser.parse_known_args(argv)
     if unknown:
-        parser.error(_unknown_message(parser, unknown))
+        parser.error(_unknown_message(parser, unknown, schema))
     layer = Layer()
     for dest, raw in vars(ns).items():
         group, name = dest.split(".", 1)
@@ -249,10 +249,14 @@ def _parse_cli(parser: argparse.ArgumentParser, schema: Schema, argv: list[str])
     return layer
 
 
-def _unknown_message(parser: argparse.ArgumentParser, unknown: list[str]) -> str:
+def _unknown_message(parser: argparse.ArgumentParser, unknown: list[str], schema: Schema) -> str:
     options = list(parser._option_string_actions)  # every registered flag, --no-* included
     parts = []
     for token in unknown:
+        flag = token.split("=", 1)[0].lstrip("-")
+        note = removed_note(schema, flag[3:] if flag.startswith("no-") else flag) if token.startswith("--") else None
+        if note:
+            return f"argument {token.split('=', 1)[0]}: {note}"
         if token.startswith("-"):
             close = difflib.get_close_matches(token.split("=", 1)[0], options, n=3, cutoff=0.6)
             parts.append(token + (f" (did you mean {', '.join(close)}?)" if close else ""))

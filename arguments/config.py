@@ -50,7 +50,7 @@ from pathlib import Path
 from typing import Any
 
 from .fields import CoercionError, coerce
-from .layers import DELETE, ConfigError, Layer, Schema, close_matches, field_owner, merge_layers
+from .layers import DELETE, ConfigError, Layer, Schema, close_matches, field_owner, merge_layers, removed_note
 
 log = logging.getLogger("arguments")
 
@@ -152,6 +152,9 @@ def validate_file(path: Path, raw: dict[str, Any], schema: Schema) -> Layer:
                 continue
             owner = group if name in schema[group] else field_owner(schema, name)
             if owner is None:
+                note = removed_note(schema, str(name))
+                if note:
+                    raise ConfigError(f"{src}: {note}; delete the key", file=src, key=key)
                 all_fields = [f for specs in schema.values() for f in specs]
                 hint = close_matches(str(name), list(schema[group]) + all_fields)
                 raise ConfigError(

@@ -24,6 +24,11 @@ _MISSING = object()
 
 Schema = dict[str, dict[str, FieldSpec]]  # group name -> field name -> spec
 
+# group name -> {removed field: one line on what it did, why it went and when}: a group's
+# `REMOVED_FIELDS` class attribute, recorded by build_schema so that a config file or a command
+# line naming a field that was taken out gets that line instead of "unknown field"
+_REMOVED_NOTES: dict[str, dict[str, str]] = {}
+
 
 class ConfigError(ValueError):
     """A configuration problem; the message names the file (or "command line") and the key."""
@@ -50,7 +55,17 @@ def build_schema(groups: dict[str, type]) -> Schema:
                                  f"{name}; field names must be unique across groups")
             owner[fname] = name
         schema[name] = specs
+        _REMOVED_NOTES[name] = dict(getattr(cls, "REMOVED_FIELDS", None) or {})
     return schema
+
+
+def removed_note(schema: Schema, name: str) -> str | None:
+    """Why field ``name`` no longer exists in one of ``schema``'s groups (None when it never did)."""
+    for group in schema:
+        note = _REMOVED_NOTES.get(group, {}).get(name)
+        if note:
+            return f"{group}.{name} was removed {note}"
+    return None
 
 
 def field_owner(schema: Schema, name: str) -> str | None:

@@ -48,10 +48,8 @@ VARIANTS = {
     "reflow camera flow only": ["--plugin", "reflow", "--disable", "full_flow"],
     "baseline batch 2": ["--batch_size", "2"],
     "reflow pair_mode both": ["--plugin", "reflow", "--pair_mode", "both"],
-    "reflow window_cull 1e-3": ["--plugin", "reflow", "--window_cull", "0.001"],
     "reflow 4 keyframes": ["--plugin", "reflow", "--dynamic_keyframes", "4"],
     "reflow no blur": ["--plugin", "reflow", "--flow_blur_sigmas", "[]"],
-    "reflow no ssim": ["--plugin", "reflow", "--photo_ssim_weight", "0"],
     "reflow flow_every 2": ["--plugin", "reflow", "--flow_every", "2"],
     # the densification window on (no densification event in these few iterations): its extra pass
     "reflow + densification pass": ["--plugin", "reflow", "--densify_until_iter", "100000",

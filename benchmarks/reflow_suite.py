@@ -21,11 +21,9 @@ world units, no motion masks, so ReFlow estimates them), in `data/synthetic_real
 `output/suite_real/` by default; PSNR-dynamic still uses the exact masks (gt/motion_masks).
 `reflow_no_align` is the paper's "w/o align" (`--no-canonical_align`; on monocular disparity
 the raw cloud fails the initial-cloud check and the run falls back to the per-frame fits),
-`reflow_no_align_unchecked` the raw cloud kept (`--no-canonical_check`), `reflow_capped` the
-dynamic branch without its scale-free position deltas (`--no-dynamic_scale_free`; identical to
-`reflow` on scenes of extent <= 1, i.e. the exact-priors suite), `reflow_promote` with
-`--promote_residual 3` and `reflow_relabel` with `--relabel_every 100` (both identical to `reflow` where
-the dataset has masks). `--schedule half` is the
+`reflow_no_align_unchecked` the raw cloud kept (`--no-canonical_check`). Variants measured and
+dropped (capped dynamic rates, promotion, relabelling, wider mask pairings) are in
+docs/PARAMETERS.md with their figures. `--schedule half` is the
 ablation's half schedule (300 coarse + 1000 fine iterations, decay and densification scaled),
 `quarter` half of that again (150 + 500). `--report_only` trains nothing and prints the table of
 the finished runs.
@@ -54,20 +52,6 @@ METHODS = {
     # the same without the check's fallback: the raw pointmaps whatever their scale
     "reflow_no_align_unchecked": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow",
                                   "--no-canonical_align", "--no-canonical_check"],
-    # the dynamic branch before the scale-free position deltas (capped learning rates alone)
-    "reflow_capped": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow", "--no-dynamic_scale_free"],
-    # static Gaussians promoted where the coarse fit leaves unmasked pixels unexplained (estimated masks only)
-    "reflow_promote": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow", "--promote_residual", "3"],
-    "reflow_masks8": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow",
-                      "--mask_offsets", "-4", "-3", "-2", "-1", "1", "2", "3", "4"],
-    # the estimated masks' slow-motion pairing, explicitly (the default since stop 34: earlier tables' command)
-    "reflow_slow_masks": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow",
-                          "--mask_slow_offsets", "-8", "-6", "-4", "4", "6", "8"],
-    # ... and without it (the near pairs alone, the default before stop 34)
-    "reflow_near_masks": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow",
-                          "--mask_slow_offsets", "0"],
-    # labels that change during the fine stage: residual votes every 100 iterations (estimated masks only)
-    "reflow_relabel": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow", "--relabel_every", "100"],
 }
 SCHEDULES = {
     "full": [],

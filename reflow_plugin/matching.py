@@ -27,9 +27,7 @@ weighted:
 
 with lambda_cr = cross_time_ratio * lambda_mc (paper: 0.1). `blur_sigmas` (ours) adds
 motion-consistency terms on blurred images, averaged with the full-resolution one: a photometric
-loss only "sees" motion within about a pixel of its sample, blur widens that range;
-`blur_dynamic_only` keeps those terms off static pixels (blur mixes a moving object's colours into
-the static pixels around it, where the two frames then disagree).
+loss only "sees" motion within about a pixel of its sample, blur widens that range.
 """
 from __future__ import annotations
 
@@ -68,7 +66,6 @@ class MatchingConfig:
     full_flow_min_share: float = STATIC_BELOW  # with full_flow_dynamic_only: a pixel's dynamic share at least this
     cam_occlusion: bool = False  # forward-backward test on the two camera flows
     cam_target_static: bool = False  # camera-flow terms only where the pixel lands on a static pixel of b
-    blur_dynamic_only: bool = False  # blurred L_mc terms only on dynamic pixels (needs extras[DYNAMIC_KEY])
 
     @property
     def lambda_cr(self) -> float:
@@ -228,11 +225,10 @@ def flow_losses(pairs: list[FlowPair], config: MatchingConfig, use_full: list[bo
             if with_render:
                 terms.add("cr", warped[..., 3:], gt_a, mask, weight)
             if blurred_pairs:
-                blur_mask = mask & ~_static_pixels(a) if config.blur_dynamic_only else mask
                 start = sources.shape[-1]
                 for blur_b, blur_a in blurred_pairs:
                     width = blur_b.shape[-1]
-                    terms.add("mc", warped_all[..., start:start + width], blur_a, blur_mask, weight)
+                    terms.add("mc", warped_all[..., start:start + width], blur_a, mask, weight)
                     start += width
             direction.flow, direction.valid, direction.warped = flow, mask, warped[..., :3]
             result.metrics[f"flow_valid_{k}"] = float(mask.float().mean())

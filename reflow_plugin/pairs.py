@@ -4,21 +4,16 @@
     i, j = sampler.sample()                          # indices into train_cameras, 1 <= |pos(i) - pos(j)| <= window
     i, j = sampler.sample(center=pos_ref, radius=r)  # both frames within r positions of a reference
     j = sampler.partner(i)                           # a partner for a frame chosen elsewhere (the host's view)
-    sampler.limit_motion(motion, max_motion)         # partners whose cameras move at most this much (pixels)
 
 Positions are ranks in time order. With `center`/`radius` the pair lies inside the allowed span
 (the schedule widens the span from the frame the dynamic points were taken from, so motion is
 learned outwards from where it is known). The direction (which frame is "a") is random. The
-generator is seeded and saved in training checkpoints (exact resume). With `limit_motion`, a
-frame's partners are the frames of its window whose camera moves at most `max_motion` pixels
-from it (the closest one when none does): on a rig that jumps between rows, a pair straddling
-the jump sees a different side of everything and a large part of it is occluded.
+generator is seeded and saved in training checkpoints (exact resume).
 """
 from __future__ import annotations
 
 from typing import Any, Sequence
 
-import numpy as np
 import torch
 
 from baselines.data import Camera
@@ -41,24 +36,10 @@ class PairSampler:
         self.position = {index: pos for pos, index in enumerate(self.order)}
         self.window = int(window)
         self.generator = torch.Generator().manual_seed(seed)
-        self.motion: np.ndarray | None = None  # [n, n] camera motion in pixels, by camera index
-        self.max_motion = float("inf")
-
-    def limit_motion(self, motion: np.ndarray, max_motion: float) -> None:
-        """Partners only among frames whose camera motion (`motion[i, j]`, pixels) is <= max_motion."""
-        motion = np.asarray(motion, dtype=np.float64)
-        if motion.shape != (len(self.order), len(self.order)):
-            raise PairError(f"camera motion must be [{len(self.order)}, {len(self.order)}], got {motion.shape}")
-        self.motion, self.max_motion = motion, float(max_motion)
 
     def _partners(self, first: int, lo: int, hi: int) -> list[int]:
         """Positions that may pair with position `first` (within the window and [lo, hi])."""
-        partners = [p for p in range(first - self.window, first + self.window + 1) if p != first and lo <= p <= hi]
-        if self.motion is None or not partners:
-            return partners
-        moves = [self.motion[self.order[first], self.order[p]] for p in partners]
-        kept = [p for p, m in zip(partners, moves) if m <= self.max_motion]
-        return kept or [partners[int(np.argmin(moves))]]
+        return [p for p in range(first - self.window, first + self.window + 1) if p != first and lo <= p <= hi]
 
     def partner(self, index: int, lo: int = 0, hi: int | None = None) -> int | None:
         """A random partner (camera index) of camera `index`, or None when it has none in [lo, hi]."""

@@ -11,6 +11,7 @@ HyperNeRF-like scenes; the cross-time weight is 0.1 x the motion-consistency wei
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 from arguments import param
 
@@ -20,6 +21,23 @@ STATIC_DECODERS = ("none", "triplane")
 CANONICAL_PROVIDERS = ("auto", "depth", "flow")
 FULL_FLOW_REGIONS = ("all", "dynamic")
 PAIR_MODES = ("partner", "both")
+
+# --- fixed values: flags until 2026-11-26, now constants nobody should tune (docs/PARAMETERS.md) ---
+PHOTO_SSIM_WEIGHT = 0.2  # photometric loss 0.8 L1 + 0.2 (1 - SSIM): the paper's and 3DGS's
+FLOW_MIN_ALPHA = 0.5  # a pixel carries flow when at least half of it is covered by Gaussians
+OCCLUSION_ALPHA1, OCCLUSION_ALPHA2 = 0.01, 0.5  # the classic forward-backward test's constants (component occlusion)
+DYNAMIC_INIT_OPACITY = 0.9  # dynamic seeds come from a frame where the object is visible (4DGS: 0.1)
+DYNAMIC_AABB_MARGIN = 0.25  # dynamic HexPlane box: the dynamic points' box grown by this fraction per side
+TIME_SCALE_LR = 0.005  # learning rate of the keyframe seeds' log temporal window widths
+WINDOW_CULL = 1e-3  # keyframe copies whose window weight is below this are not deformed: exact below 1/255
+
+
+def _removed(what: str, why: str) -> str:
+    return f"on 2026-11-26 ({what}; measured: {why}; docs/PARAMETERS.md)"
+
+
+def _fixed(what: str) -> str:
+    return f"on 2026-11-26: now fixed, {what} (reflow_plugin/params.py; docs/PARAMETERS.md)"
 
 
 def _non_negative(value: float) -> str | None:
@@ -61,6 +79,45 @@ def _slow_offsets(value: list[int]) -> str | None:
 class ReFlowParams:
     """Weights, schedule and options of ReFlow (paper sections 3.2-3.4, appendix A)."""
 
+    # fields taken out (experiments that did not pay, or constants): a config file or flag naming
+    # one gets this line (arguments.layers.removed_note); the figures are in docs/PARAMETERS.md
+    REMOVED_FIELDS: ClassVar[dict[str, str]] = {
+        "relabel_every": _removed("labels that change during training", "neutral: real-priors suite every "
+                                  "scene within 0.1 dB, mean 24.88 vs 24.94"),
+        "relabel_residual": _removed("the residual threshold of --relabel_every", "see relabel_every"),
+        "relabel_min_views": _removed("the view count of --relabel_every", "see relabel_every"),
+        "promote_residual": _removed("static Gaussians promoted after the coarse stage", "neutral: real-priors "
+                                     "suite mean 24.85 vs 24.91"),
+        "box_labels": _removed("every Gaussian in the dynamic box dynamic (a diagnostic)", "umbrella -1.1 dB, "
+                               "truck -0.8 dB overall at 3-4x the time"),
+        "pair_max_motion": _removed("partners limited by camera motion", "neutral: +0.08 dB on the embedded scene"),
+        "flow_blur_region": _removed("blurred motion-consistency terms on dynamic pixels only", "-1.35 dB on the "
+                                     "embedded scene"),
+        "full_flow_static_grad": _removed("--no-full_flow_static_grad detached static Gaussians' flow channels",
+                                          "-0.14 dB on the embedded scene; the paper's gradient is kept"),
+        "dynamic_warmup": _removed("fine iterations with the dynamic deformation frozen (default 0)",
+                                   "never on; --dynamic_settle_fraction holds the dynamic Gaussians instead"),
+        "canonical_shift": _removed("a per-frame depth shift in the pairwise alignment", "it trades against the "
+                                    "scale and flattens the depth of noisy pointmaps"),
+        "dynamic_scale_free": _removed("--no-dynamic_scale_free (the capped rates alone)", "the scale-free "
+                                       "branch is always on: +0.39 dB on Balloon1, bit-identical at extent <= 1"),
+        "photo_ssim_weight": _fixed("PHOTO_SSIM_WEIGHT = 0.2 (the paper's 0.8 L1 + 0.2 D-SSIM)"),
+        "flow_min_alpha": _fixed("FLOW_MIN_ALPHA = 0.5"),
+        "occlusion_alpha1": _fixed("OCCLUSION_ALPHA1 = 0.01"),
+        "occlusion_alpha2": _fixed("OCCLUSION_ALPHA2 = 0.5"),
+        "dynamic_aabb_margin": _fixed("DYNAMIC_AABB_MARGIN = 0.25"),
+        "dynamic_init_opacity": _fixed("DYNAMIC_INIT_OPACITY = 0.9"),
+        "time_scale_lr": _fixed("TIME_SCALE_LR = 0.005"),
+        "window_cull": _fixed("WINDOW_CULL = 1e-3, exact"),
+        "cam_flow_target_static": _fixed("always on (the paper masks both sides; +0.02 dB)"),
+        "coarse_static_only": _fixed("always on (the coarse stage fits the static scene alone)"),
+        "protect_dynamic": _fixed("always on (dynamic Gaussians are never pruned)"),
+        "dynamic_zero_init": _fixed("always on (the dynamic branch starts at the canonical place)"),
+        "relative_time": _fixed("always on (keyframe seeds deformed at t - t_keyframe)"),
+        "anchor_keyframes": _fixed("always on (without the anchor the flow loss dragged every copy off its "
+                                   "frame: EPE-dynamic 4.30 vs 0.74 px)"),
+    }
+
     # --- loss weights (paper) ---
     lambda_ff: float = param(5.0, "weight of full flow matching (paper: 5.0 NVIDIA-like, 1.0 HyperNeRF-like)",
                              check=_non_negative)
@@ -71,8 +128,6 @@ class ReFlowParams:
                                     check=_non_negative)
     lambda_ext: float = param(1.0, "weight of the external-flow L1 loss (component ext_flow, the paper's "
                                    "'Ours (External Flow)' comparison), per pixel of flow", check=_non_negative)
-    photo_ssim_weight: float = param(0.2, "weight of (1 - SSIM) in the photometric loss (0.8 L1 + 0.2 D-SSIM)",
-                                     check=_fraction)
     # --- pairs and flow ---
     pair_window: int = param(2, "largest distance, in training frames, between the two frames of a pair",
                              check=_positive)
@@ -80,22 +135,10 @@ class ReFlowParams:
                                       "deforms + projects a nearby frame b (what L_mc and camera flow of a -> b "
                                       "need); no L_cr (it needs b's render). both (the paper): both frames "
                                       "rendered, both directions, L_cr", choices=PAIR_MODES)
-    pair_max_motion: float = param(0.0, "ours: a frame's partners are only the frames of its window whose camera "
-                                        "moves at most this multiple of the median camera motion between "
-                                        "neighbouring training frames (the closest one when none does); "
-                                        "0 = every frame of the window", check=_non_negative)
-    flow_min_alpha: float = param(0.5, "pixels rendered with less opacity than this carry no flow (masked)",
-                                  check=_fraction)
     flow_blur_sigmas: list[float] = param([2.0, 4.0], "extra motion-consistency terms on images blurred with "
                                               "these Gaussian sigmas in pixels (ours, beyond the paper: a wider "
                                               "capture range for large motion); [] = the paper's loss",
                                           check=_sigmas)
-    flow_blur_region: str = param("all", "pixels the blurred motion-consistency terms are evaluated on: all, or "
-                                         "dynamic (rendered dynamic share >= 0.5): blur mixes a moving object's "
-                                         "colours into the static pixels around it", choices=FULL_FLOW_REGIONS)
-    cam_flow_target_static: bool = param(True, "camera-flow terms only where the pixel also lands on a static "
-                                                "pixel of frame b (the paper masks both sides): b's rendered dynamic "
-                                                "share in pair_mode both, b's motion mask in pair_mode partner")
     full_flow_region: str = param("dynamic", "pixels full flow matching is evaluated on: dynamic (ours, the default: "
                                              "only where the rendered dynamic share is >= --full_flow_min_share, each pixel weighted as "
                                              "in the loss over all pixels; static pixels are left to camera flow "
@@ -105,30 +148,13 @@ class ReFlowParams:
                                              "pixels at the object's edge blend static Gaussians in; 0.5 before: "
                                              "-0.5 dB on the suite, all of it a band around the moving objects)",
                                        check=_fraction)
-    full_flow_static_grad: bool = param(True, "static Gaussians receive the full-flow terms' gradient through "
-                                              "their flow channels (the paper); --no-full_flow_static_grad "
-                                              "(ours) detaches those channels of static Gaussians, so the "
-                                              "terms move only the dynamic Gaussians' positions and shapes "
-                                              "(compositing weights still carry gradient to every Gaussian)")
     flow_every: int = param(1, "compute the flow-matching terms (and their flow channels) every this many "
                                "iterations only: a cost knob of the accuracy-versus-time sweep",
                             check=_positive)
     cam_flow_min_motion: float = param(0.05, "skip camera-flow losses on pairs whose cameras move less than "
                                              "this many pixels (estimated at the scene's median depth)",
                                        check=_non_negative)
-    occlusion_alpha1: float = param(0.01, "forward-backward occlusion test (component 'occlusion'): "
-                                          "|f + b|^2 < a1 (|f|^2 + |b|^2) + a2", check=_non_negative)
-    occlusion_alpha2: float = param(0.5, "see occlusion_alpha1 (pixels^2)", check=_non_negative)
     # --- schedule (appendix A.4; ours where noted) ---
-    coarse_static_only: bool = param(True, "coarse stage: dynamic Gaussians frozen, the baseline loss left "
-                                           "out inside motion masks (static scene fitted first)")
-    dynamic_warmup: int = param(0, "fine-stage iterations with the dynamic deformation frozen",
-                                check=_non_negative)
-    protect_dynamic: bool = param(True, "dynamic Gaussians are never pruned (their motion is learned later "
-                                        "than their appearance)")
-    dynamic_init_opacity: float = param(0.9, "opacity of the dynamic Gaussians at initialisation (ours: they come "
-                                             "from a frame where the object is visible; 4DGS starts every "
-                                             "Gaussian at 0.1)", check=_fraction)
     dynamic_settle_fraction: float = param(0.5, "ours: fraction of the fine stage during which the dynamic "
                                                 "Gaussians' own parameters (opacity, colour, scale, ...) are held "
                                                 "fixed, so the losses can only be lowered by MOVING them: with an "
@@ -150,15 +176,6 @@ class ReFlowParams:
                                               "embedded scene scaled 6x (extent 3.4) diverged to NaN within 200 "
                                               "fine iterations (0 = 4DGS's extent factor, uncapped)",
                                          check=_non_negative)
-    dynamic_scale_free: bool = param(True, "ours: above dynamic_lr_extent_cap, the dynamic branch's position "
-                                           "deltas are multiplied by extent / cap (the state dict keeps the "
-                                           "effective weights), so the branch learns on a scene of any scale as "
-                                           "at extent cap instead of (extent / cap) times more slowly; "
-                                           "--no-dynamic_scale_free: the capped rates alone")
-    dynamic_zero_init: bool = param(True, "the dynamic branch's output layers start at zero (Gaussians start "
-                                          "at their canonical place at every time)")
-    dynamic_aabb_margin: float = param(0.25, "the dynamic HexPlane's box is the dynamic points' box grown by "
-                                             "this fraction of its size per side", check=_non_negative)
     disparity_field: int = param(4, "ours: the dataset's monocular disparity gets a smooth per-frame correction "
                                     "(a bilinear field on this many control values per side, fitted to the "
                                     "sparse static points after the affine fit and kept only where it lowers "
@@ -183,24 +200,6 @@ class ReFlowParams:
                                          check=_slow_offsets)
     label_vote: float = param(0.5, "an initial point is dynamic when it lies inside the motion mask in at "
                                    "least this fraction of the training views that see it", check=_fraction)
-    promote_residual: float = param(0.0, "ours, optional: with ESTIMATED masks, at the start of the fine stage "
-                                         "static Gaussians are made dynamic where the coarse (static) fit "
-                                         "leaves unmasked pixels above this multiple of the view's median "
-                                         "residual in at least label_vote of their views (reflow_plugin/"
-                                         "promotion.py); 0 = off", check=_non_negative)
-    box_labels: bool = param(False, "ours, diagnostic: with ESTIMATED masks, at the start of the fine stage "
-                                    "every Gaussian inside the dynamic branch's box becomes dynamic (labels "
-                                    "that do not depend on the masks' recall: what full recall buys)")
-    relabel_every: int = param(0, "ours, optional: with ESTIMATED masks, every this many fine iterations "
-                                  "while densification runs, static Gaussians whose centre lay on flagged "
-                                  "pixels of the rendered training view (residual above relabel_residual x "
-                                  "the view's median, outside the mask) in at least label_vote of at least "
-                                  "relabel_min_views views become dynamic (labels that change during "
-                                  "training; promotion.py: ResidualVotes); 0 = off", check=_non_negative)
-    relabel_residual: float = param(3.0, "relabel_every: a pixel is flagged above this multiple of the "
-                                         "view's median residual", check=_positive)
-    relabel_min_views: int = param(5, "relabel_every: views a static Gaussian must have been counted in "
-                                      "before it can be promoted", check=_positive)
     seed_edge_ratio: float = param(1.1, "ours: keyframe seeds on depth edges (the 3x3 neighbourhood's depths "
                                         "span more than this ratio: a monocular depth map's soft edges put "
                                         "such pixels between the object and the background) take the nearest "
@@ -212,17 +211,6 @@ class ReFlowParams:
     dynamic_keyframes: int = param(8, "ours: frames the dynamic points are seeded from, spread over the "
                                       "sequence, each point in a temporal opacity window around its frame; "
                                       "1 = the paper's single reference frame", check=_positive)
-    relative_time: bool = param(True, "ours: the dynamic branch deforms keyframe seeds at their own time "
-                                      "t - t_keyframe (one motion field shared by every keyframe's copy)")
-    anchor_keyframes: bool = param(True, "ours: keyframe seeds are deformed by D(x, t - t_k) - D(x, 0), so they "
-                                         "sit exactly where they were seeded at their own time")
-    window_cull: float = param(1e-3, "ours, a cost knob: keyframe copies whose temporal window weight at the "
-                                      "rendered time is below this are not deformed; below 1/255 this is exact "
-                                      "(their windowed opacity is under the rasterizer's 1/255 visibility "
-                                      "cut, so they are not drawn wherever they are); 0 = deform every copy",
-                               check=_fraction)
-    time_scale_lr: float = param(0.005, "learning rate of the log temporal window widths (keyframe seeds)",
-                                 check=_non_negative)
     # --- upgrading a 4DGS checkpoint (--start_checkpoint OLD/point_cloud/iteration_N) ---
     upgrade_labels: str = param("auto", "labels of a loaded point_cloud folder: motion (from the deformation "
                                         "magnitude over the training times, static Gaussians baked at their "
@@ -263,8 +251,6 @@ class ReFlowParams:
                                                   "host's cloud + part 1 seeds); 0 = no limit", check=_non_negative)
     canonical_iters: int = param(300, "Adam iterations of each alignment (keyframe graph, each clip)",
                                  check=_non_negative)
-    canonical_shift: bool = param(False, "also fit a per-frame depth shift (besides the scale); off by default: "
-                                         "with noisy pointmaps it trades against the scale and flattens depth")
     canonical_check: bool = param(True, "check the canonical cloud before training (views, depth against the "
                                         "sparse points or bounds, dynamic spread) and fall back when it fails; "
                                         "--no-canonical_check keeps a failing cloud (with the warning), e.g. to "

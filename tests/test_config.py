@@ -276,3 +276,55 @@ def test_shipped_values_match_4dgs():
     assert synth.hidden.kplanes_config["resolution"] == [32, 32, 32, 12]
     assert synth.hidden.multires == [1, 2]
     assert max(synth.run.test_iterations + synth.run.save_iterations) <= synth.opt.iterations
+
+
+# --- fields a group removed: one line saying so, not "unknown field" ---------------------------
+
+def test_removed_reflow_field_in_a_config_file_says_it_was_removed(tmp_path):
+    from reflow_plugin.params import ReFlowParams
+
+    groups = {"ReFlowParams": ReFlowParams}
+    cfg = write(tmp_path / "old.py", "ReFlowParams = dict(lambda_ff=1.0, relabel_every=100)\n")
+    with pytest.raises(ConfigError) as exc:
+        parse_train_args(["--configs", str(cfg)], extra_groups=groups)
+    message = str(exc.value)
+    assert exc.value.key == "ReFlowParams.relabel_every" and "\n" not in message
+    assert "ReFlowParams.relabel_every was removed on 2026-11-26" in message and "docs/PARAMETERS.md" in message
+    # a key that never existed is still an unknown field, with its close matches
+    cfg = write(tmp_path / "typo.py", "ReFlowParams = dict(lambda_fff=1.0)\n")
+    with pytest.raises(ConfigError, match=r"unknown field 'ReFlowParams.lambda_fff' \(did you mean 'lambda_ff'"):
+        parse_train_args(["--configs", str(cfg)], extra_groups=groups)
+
+
+@pytest.mark.parametrize("argv", [["--box_labels"], ["--no-anchor_keyframes"], ["--window_cull=0"],
+                                  ["--iterations", "3", "--promote_residual", "3"]])
+def test_removed_reflow_flag_on_the_command_line_says_it_was_removed(argv, capsys):
+    from reflow_plugin.params import ReFlowParams
+
+    with pytest.raises(SystemExit) as exc:
+        parse_train_args(argv, extra_groups={"ReFlowParams": ReFlowParams})
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    name = argv[-1 if len(argv) == 1 else -2].split("=")[0].lstrip("-").removeprefix("no-")
+    assert f"ReFlowParams.{name} was removed on 2026-11-26" in err
+    # without the plugin's group the same flag is an ordinary unrecognized argument
+    with pytest.raises(SystemExit):
+        parse_train_args(argv)
+    err = capsys.readouterr().err
+    assert "unrecognized arguments" in err and "was removed" not in err
+
+
+def test_removed_fields_are_not_fields_and_every_flag_has_a_row_in_the_parameter_doc():
+    import dataclasses
+
+    from reflow_plugin.params import ReFlowParams
+
+    fields = [f.name for f in dataclasses.fields(ReFlowParams)]
+    assert len(fields) <= 40
+    assert not set(fields) & set(ReFlowParams.REMOVED_FIELDS)
+    doc = (Path(__file__).resolve().parent.parent / "docs" / "PARAMETERS.md").read_text()
+    kept, _, gone = doc.partition("## Fixed values")
+    missing = [f for f in fields if f"`--{f}`" not in kept]
+    assert not missing, f"flags without a row in docs/PARAMETERS.md: {missing}"
+    undocumented = [f for f in ReFlowParams.REMOVED_FIELDS if f"--{f}" not in gone and f"--no-{f}" not in gone]
+    assert not undocumented, f"removed fields without a row in docs/PARAMETERS.md: {undocumented}"

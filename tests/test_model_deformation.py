@@ -216,7 +216,7 @@ def test_position_scale_makes_the_branch_learn_alike_at_any_scene_scale():
     """The same fit at unit scale and at scale k (points, targets and position scale x k): Adam at the
     same rate gives k times the displacement (what the dynamic branch of a scene at scale 50 needs);
     without the position scale the scaled copy fits far less of the same motion in as many steps. The
-    position head starts at zero, as ReFlow's dynamic branch does (`dynamic_zero_init`): a random
+    position head starts at zero, as ReFlow's dynamic branch does (its zero-initialised heads): a random
     start would be a different function at each scale."""
     args = hidden_args()
     k = 50.0

@@ -327,7 +327,6 @@ def test_dynamic_lr_multiplier_caps_the_extent_factor(extent, cap, expected):
     (0.6, {}, 1.0),                                  # below the cap: 4DGS's parametrisation
     (36.0, {}, 36.0),                                # scale 50 (truck's extent): deltas x extent / cap
     (36.0, {"dynamic_lr_extent_cap": 4.0}, 9.0),
-    (36.0, {"dynamic_scale_free": False}, 1.0),      # the capped rates alone
     (36.0, {"dynamic_lr_extent_cap": 0.0}, 1.0),     # uncapped 4DGS rates: nothing to make up for
 ])
 def test_dynamic_branch_position_scale_follows_the_capped_extent(extent, flags, expected):

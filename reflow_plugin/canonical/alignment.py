@@ -290,16 +290,16 @@ def _check_connected(frames: Sequence[int], edges: Sequence[tuple[int, int]], fi
 
 def align_frames(provider: PointmapProvider, frames: Sequence[int], edges: Sequence[tuple[int, int]],
                  weights: Mapping[int, np.ndarray], fixed: Mapping[int, FrameState] | None = None,
-                 free_poses: bool = False, iterations: int = 300, lr: float = 0.003, shift: bool = False,
+                 free_poses: bool = False, iterations: int = 300, lr: float = 0.003,
                  progress: bool = False, desc: str = "align", device: torch.device | str = "cpu"
                  ) -> tuple[dict[int, FrameState], dict]:
     """Align `frames` (camera indices) over the pair graph `edges` (i, j).
 
     weights: per frame [h, w] multipliers of the confidence (0 on dynamic pixels).
     fixed: frames whose state is known (kept as is; the anchors of a clip).
-    shift: optimise the per-frame depth shift too (off by default: with noisy pointmaps a free
-        shift trades against the scale and compresses the depth range, measured 15% too shallow
-        with 2% depth noise on the simulator; on for depth with a real unknown offset).
+    The per-frame depth shift stays at its initial value: a free shift trades against the scale
+    with noisy pointmaps and compressed the depth range, measured 15% too shallow with 2% depth
+    noise on the simulator (the `--canonical_shift` flag, removed 2026-11-26).
     Returns ({frame: FrameState}, report with residuals, edge counts and seconds).
     """
     start = time.perf_counter()
@@ -316,15 +316,15 @@ def align_frames(provider: PointmapProvider, frames: Sequence[int], edges: Seque
     if not pairs:
         report.update(residual_init=None, residual=None, seconds=time.perf_counter() - start)
         return {n: states[n] for n in frames}, report
-    states, residuals = _refine(data, pairs, states, fixed, free_poses, shift, iterations, lr, progress, desc, device)
+    states, residuals = _refine(data, pairs, states, fixed, free_poses, iterations, lr, progress, desc, device)
     report.update(residual_init=residuals[0], residual=residuals[1], seconds=time.perf_counter() - start)
     return {n: states[n] for n in frames}, report
 
 
 def _refine(data: dict[int, _Frame], pairs: dict[tuple[int, int], PairPrediction], states: dict[int, FrameState],
-            fixed: Mapping[int, FrameState], free_poses: bool, shift: bool, iterations: int, lr: float, progress: bool,
+            fixed: Mapping[int, FrameState], free_poses: bool, iterations: int, lr: float, progress: bool,
             desc: str, device) -> tuple[dict[int, FrameState], tuple[float, float]]:
-    """Adam over scales, shifts, edge similarities (and free poses); residuals before/after
+    """Adam over scales, edge similarities (and free poses); residuals before/after
     (weighted mean 3D distance relative to depth)."""
     order = sorted(data)
     index = {n: k for k, n in enumerate(order)}
@@ -339,7 +339,6 @@ def _refine(data: dict[int, _Frame], pairs: dict[tuple[int, int], PairPrediction
     t0 = T([states[n].viewmat[:3, 3] / ref for n in order])
     roots = set(fixed) if fixed else {order[0]}
     free_frame = T([0.0 if n in fixed else 1.0 for n in order])
-    free_shift = free_frame * float(shift)
     free_pose = T([1.0 if free_poses and n not in roots else 0.0 for n in order])
     free_scale = free_frame * (1 - T([1.0 if free_poses and n in roots else 0.0 for n in order]))
     ei = torch.as_tensor([index[i] for i, _ in pairs], device=device)
@@ -354,12 +353,12 @@ def _refine(data: dict[int, _Frame], pairs: dict[tuple[int, int], PairPrediction
     ts0 = T([t / ref for _, _, t in fits])
     E, F = len(pairs), len(order)
     params = {k: torch.zeros(shape, device=device, requires_grad=True) for k, shape in
-              (("a", (F,)), ("b", (F,)), ("w", (F, 3)), ("t", (F, 3)), ("s", (E,)), ("we", (E, 3)), ("te", (E, 3)))}
+              (("a", (F,)), ("w", (F, 3)), ("t", (F, 3)), ("s", (E,)), ("we", (E, 3)), ("te", (E, 3)))}
     total = Wi.sum() + Wj.sum()
 
     def loss_fn() -> torch.Tensor:
         scale = torch.exp(a0 + free_scale * params["a"])
-        depth = (scale[:, None] * D + (b0 + free_shift * params["b"])[:, None]) / ref
+        depth = (scale[:, None] * D + b0[:, None]) / ref
         R = rotvec_to_matrix(free_pose[:, None] * params["w"]) @ R0
         t = t0 + free_pose[:, None] * params["t"]
         chi = torch.einsum("fji,fpj->fpi", R, rays * depth[..., None] - t[:, None])  # R^T (p - t)
@@ -390,7 +389,7 @@ def _refine(data: dict[int, _Frame], pairs: dict[tuple[int, int], PairPrediction
     with torch.no_grad():
         final = float(loss_fn())
         scale = torch.exp(a0 + free_scale * params["a"]).cpu().double().numpy()
-        shift = ((b0 + free_shift * params["b"]) * ref).cpu().double().numpy()
+        shift = (b0 * ref).cpu().double().numpy()
         R = (rotvec_to_matrix(free_pose[:, None] * params["w"]) @ R0).cpu().double().numpy()
         t = ((t0 + free_pose[:, None] * params["t"]) * ref).cpu().double().numpy()
     out = {}

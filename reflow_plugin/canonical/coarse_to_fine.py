@@ -44,7 +44,7 @@ def clip_edges(clip: Sequence[int], window: int) -> list[tuple[int, int]]:
 def align_sequence(provider: PointmapProvider, frames: Sequence[int], weights: Mapping[int, np.ndarray],
                    mode: str = "coarse_to_fine", clip_len: int = 25, window: int = 4, free_poses: bool = False,
                    iterations: int = 300, progress: bool = False, device="cpu",
-                   shift: bool = False, hold_keyframes: bool | None = None) -> tuple[dict[int, FrameState], dict]:
+                   hold_keyframes: bool | None = None) -> tuple[dict[int, FrameState], dict]:
     """States of every frame and a report {mode, keyframes, clips, edges, residuals, seconds}.
 
     hold_keyframes: hold each clip's keyframe at its keyframe-graph state (None: with free poses
@@ -59,7 +59,7 @@ def align_sequence(provider: PointmapProvider, frames: Sequence[int], weights: M
     if mode == "coarse_to_fine" and clip_len < 2:
         raise ValueError(f"canonical_clip_len must be at least 2 (a clip pairs its frames), got {clip_len}")
     start = time.perf_counter()
-    common = dict(free_poses=free_poses, iterations=iterations, progress=progress, device=device, shift=shift)
+    common = dict(free_poses=free_poses, iterations=iterations, progress=progress, device=device)
     if mode == "full":
         states, stage = align_frames(provider, frames, list(itertools.combinations(frames, 2)), weights,
                                      desc="align (full graph)", **common)

@@ -57,7 +57,6 @@ class CanonicalOptions:
     mode: str = "coarse_to_fine"  # or "full" (every pair in one graph; O(N^2))
     free_poses: bool = False  # optimise camera poses too (the dataset's only anchor the gauge)
     max_side: int = 64  # alignment grid: every stride-th pixel, stride = ceil(longest side / max_side)
-    shift: bool = False  # optimise a per-frame depth shift besides the scale (alignment.align_frames)
     refine: bool = True  # inverse-depth path: joint refinement after the per-frame fits (inverse.py)
     inverse_iterations: int = 50  # Adam steps of that refinement
     mask_dynamic: bool = True  # pixels in the motion masks carry no weight in the alignment
@@ -103,7 +102,7 @@ def options_from_params(p: Any) -> CanonicalOptions:
                             window=p.canonical_window, voxel=p.canonical_voxel, max_points=p.canonical_max_points,
                             consistency=p.canonical_consistency,
                             iterations=p.canonical_iters,
-                            cache=p.canonical_cache, shift=p.canonical_shift,
+                            cache=p.canonical_cache,
                             dynamic_points=p.seed_points)
 
 
@@ -219,8 +218,7 @@ def build_canonical_space(scene: Any, masks: Sequence[np.ndarray] | None, option
         states, alignment = inverse
     elif options.align:
         states, alignment = align_sequence(provider, frames, weights, options.mode, options.clip_len, options.window,
-                                           options.free_poses, options.iterations, progress, options.device,
-                                           options.shift)
+                                           options.free_poses, options.iterations, progress, options.device)
     else:
         states, alignment = unaligned(provider, frames)
     split_start = time.perf_counter()
