@@ -9,8 +9,8 @@ Components (``--disable`` / ``--enable``, the paper's ablation switches):
     separation  static/dynamic separated deformation + dynamic points seeded in the motion masks
     full_flow   full flow matching (L_mc + L_cr on the pair's rendered full flows)
     cam_flow    camera flow matching on static pixels
-    occlusion   (off by default) forward-backward occlusion masks for full flow matching
-    cam_occlusion (off by default) the same test on the pair's two camera flows
+    occlusion   (off by default) forward-backward occlusion masks for full flow matching (pair_mode both)
+    cam_occlusion (off by default) the same test on the pair's two camera flows (pair_mode both)
     ext_flow    (off by default) L1 between the rendered full flow and cached DIS optical flow: the
                 paper's "Ours (External Flow)" row is `--enable ext_flow --disable full_flow`
 
@@ -55,7 +55,7 @@ from .evaluate import flow_metrics, summary_line, write_flow_metrics
 from .external import ExternalFlowCache, external_flow_loss
 from .flow import camera_motion_pixels, flow_features, full_flow
 from .labels import aligned_depths, training_masks, vote_labels
-from .matching import DYNAMIC_KEY, FLOW_KEY, FlowPair, MatchingConfig, dynamic_share, flow_losses
+from .matching import DYNAMIC_KEY, FLOW_KEY, FlowPair, MatchingConfig, check_occlusion_mode, dynamic_share, flow_losses
 from .pairs import PairSampler, curriculum_radius
 from .params import ReFlowParams
 from .promotion import ResidualVotes, missed_motion_maps, promoted_gaussians
@@ -120,6 +120,7 @@ class ReFlowPlugin(Plugin):
             full_flow_dynamic_only=self.p.full_flow_region == "dynamic" and self.is_enabled("separation"),
             full_flow_min_share=self.p.full_flow_min_share,
             cam_target_static=self.p.cam_flow_target_static, blur_dynamic_only=self.p.flow_blur_region == "dynamic")
+        check_occlusion_mode(self.config.occlusion, self.config.cam_occlusion, self.p.pair_mode)
         self._blur_cache: dict[tuple[str, float], Tensor] = {}
         self._camera_motion: dict[tuple[int, int], float] = {}
         self._any_dynamic: tuple[Tensor, bool] | None = None  # (labels tensor, any dynamic): _has_dynamic
@@ -243,7 +244,9 @@ class ReFlowPlugin(Plugin):
 
     def _corrected_disparity(self, ctx) -> list:
         """The training cameras, their disparity with the smooth per-frame correction (disparity_field.py)
-        where it was kept; the cameras themselves without disparity, sparse points or `disparity_field`."""
+        where it was kept; the cameras themselves without disparity, sparse points or `disparity_field`.
+        Fitted to the sparse points outside the dataset's motion masks; without them (estimated masks
+        come later, from this depth) to every sparse point, the field's biweight the only guard."""
         cameras = ctx.train_cameras
         points = _metric_points(ctx)
         if (self.p.disparity_field == 0 or len(points) == 0
@@ -252,7 +255,8 @@ class ReFlowPlugin(Plugin):
         out, reports = [], []
         for cam in cameras:
             disparity = cam.disparity.detach().cpu().numpy().astype(np.float64)
-            corrected, report = correct_disparity(cam, disparity, points, self.p.disparity_field)
+            static = None if cam.mask is None else cam.mask.detach().cpu().numpy() > 0.5  # the dataset's masks
+            corrected, report = correct_disparity(cam, disparity, points, self.p.disparity_field, static)
             reports.append(report)
             out.append(replace(cam, disparity=torch.as_tensor(corrected, dtype=cam.disparity.dtype,
                                                               device=cam.disparity.device))
@@ -261,7 +265,9 @@ class ReFlowPlugin(Plugin):
         before = float(np.median([r["residual"] for r in done])) if done else None
         after = float(np.median([r["residual_corrected"] for r in done])) if done else None
         self.info["disparity_field"] = {"grid": self.p.disparity_field, "frames": len(cameras),
-                                        "corrected": len(done), "residual": before, "residual_corrected": after}
+                                        "corrected": len(done), "residual": before, "residual_corrected": after,
+                                        "held_out": {c.image_name: r["held_out_after"]  # what the check gates on
+                                                     for c, r in zip(cameras, reports) if r["corrected"]}}
         if done:
             log.info("disparity: a smooth correction kept in %d of %d frames (median residual at the sparse "
                      "points %.3f -> %.3f)", len(done), len(cameras), before, after)
@@ -334,7 +340,7 @@ class ReFlowPlugin(Plugin):
         same prior). Recorded in info["canonical_check"].
         """
         from .canonical import build_canonical_space, options_from_params
-        from .canonical.check import check_initial_cloud
+        from .canonical.check import check_initial_cloud, prior_residual
 
         options = options_from_params(self.p)
         options.device = str(ctx.device)
@@ -353,8 +359,8 @@ class ReFlowPlugin(Plugin):
                                           cache_dir=self._run_dir(ctx) / "canonical",
                                           progress=not ctx.args.run.quiet, anchors=anchors)
             static, dynamic, times, groups, described = self._compose(ctx, space, masks)
-            fits = space.report["alignment"].get("fits") or {}
-            residual = fits.get("median_residual") if fits.get("sources", {}).get("sparse") else None
+            residual = prior_residual(space.report["alignment"].get("fits") or {},
+                                      self.info.get("disparity_field", {}).get("held_out", {}))
             check = check_initial_cloud(static.points, groups, ctx.train_cameras, anchors, residual,
                                         self.p.canonical_max_fit_residual, self.p.canonical_max_depth_error)
             if check.passed or keep:
@@ -590,9 +596,11 @@ class ReFlowPlugin(Plugin):
             if ctx.stage == "coarse" and bool(dynamic.any()) and HIDDEN_OPACITY not in model.registered_buffers:
                 model.register_gaussian_buffer(HIDDEN_OPACITY, model._opacity.detach().clone())
                 model._opacity[dynamic] = HIDDEN_LOGIT
+                ctx.hidden = dynamic.clone()
             elif ctx.stage == "fine" and HIDDEN_OPACITY in model.registered_buffers:
                 saved = model.pop_gaussian_buffer(HIDDEN_OPACITY)
                 model._opacity[dynamic] = saved[dynamic]
+                ctx.hidden = None
 
     # ------------------------------------------------------------------ per iteration
     def select_batch(self, ctx) -> list | None:
