@@ -48,6 +48,7 @@ MAX_POLISH_LOSS = 1.1  # the IRLS polish is kept when its median |residual| is a
 COVERAGE_CELLS = 16  # one vote per cell of a grid with this many cells along the image's longer side
 SAMPLES = 200  # 2-point samples of the least-median-of-squares start
 SCORE_POINTS = 2048  # above this many points, each sample's median is taken on this many drawn by vote
+HELD_OUT_MIN = 30  # pairs each half needs for a held-out residual
 REGION_BLOCKS = 4  # held-out folds: a checkerboard with this many squares along the longer side
 FLAT_DISPARITY = 1e-6  # disparity spread (relative to its largest magnitude) below which a map is flat
 
@@ -231,12 +232,16 @@ def region_folds(x: np.ndarray, y: np.ndarray, width: int, height: int, blocks: 
 def held_out_residual(d: np.ndarray, z: np.ndarray, x: np.ndarray, y: np.ndarray, width: int,
                       height: int) -> float | None:
     """Vote-weighted median |relative residual| of every sparse pair [K] under the affine fit to
-    the OTHER half (region_folds), both halves in turn; None when a half has no fit."""
+    the OTHER half (region_folds), both halves in turn; None when a half has fewer than
+    HELD_OUT_MIN pairs (a fit to 15 points of a real-priors frame was off by 10x in scale: the
+    figure would measure the small sample, not the prior) or no fit."""
     fold = region_folds(x, y, width, height)
+    if min(int(fold.sum()), int((~fold).sum())) < HELD_OUT_MIN:
+        return None
     votes = coverage_weights(x, y, width, height)
     held, weights = [], []
     for train in (fold, ~fold):
-        fit = fit_disparity(d[train], z[train], weights=votes[train]) if train.sum() else None
+        fit = fit_disparity(d[train], z[train], weights=votes[train])
         if fit is None or not (~train).any():
             return None
         held.append(np.abs(_residual(d[~train], z[~train], fit.scale, fit.shift)))

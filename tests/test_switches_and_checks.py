@@ -15,8 +15,7 @@ import torch
 
 from reflow_plugin.canonical import inverse as inverse_module
 from reflow_plugin.canonical.geometry import grid, rays
-from reflow_plugin.disparity import (FrameFit, coverage_weights, fit_disparity, fit_frames, held_out_residual,
-                                     project, region_folds)
+from reflow_plugin.disparity import FrameFit, coverage_weights, fit_disparity, fit_frames, project
 
 W, H, F = 64, 48, 50.0
 
@@ -172,12 +171,22 @@ def test_the_depth_prior_gate_reads_held_out_points_and_reports_all_points():
     verdict = check_initial_cloud(points, [], [cam], points, residual, max_fit_residual=0.1)
     assert not verdict.passed and "held out by image region" in verdict.failure
     assert verdict.measurements["fit_residual_inliers"] < 0.1 < verdict.measurements["fit_residual"]
+    # too few points to hold half out (60: 30 a half is the least): no held-out figure; the gate
+    # reads every point in sample and says so
+    few = fit_frames([cam], [disparity], points[:50])[0]
+    assert few.source == "sparse" and few.held_out is None
+    few_report = dict(summary([few]), frames={cam.image_name: few.as_dict()})
+    verdict = check_initial_cloud(points, [], [cam], points, prior_residual(few_report), max_fit_residual=0.01)
+    assert not verdict.passed and "in sample (too few points" in verdict.failure
+    assert verdict.measurements["fit_residual"] == few.residual_all
     # where the smooth correction was kept, its own held-out residual stands for the frame's
     assert prior_residual(report, {cam.image_name: 0.02})["held_out"] == 0.02
     assert prior_residual({"frames": {"000": FrameFit(1.0, 0.0, "bounds").as_dict()}}) is None
 
 
 def test_held_out_points_come_from_the_other_regions():
+    from reflow_plugin.disparity import region_folds
+
     x, y = np.random.default_rng(0).uniform(0, W, (2, 2000)) * np.array([[1.0], [H / W]])
     fold = region_folds(x, y, W, H)
     size = max(W, H) / 4
@@ -195,6 +204,7 @@ def test_held_out_points_come_from_the_other_regions():
 def test_the_field_is_accepted_on_held_out_regions_with_votes():
     """The field's "before" is exactly the affine fit's held-out residual by region (vote-weighted,
     every held-out point), the figure the depth-prior gate reads for an uncorrected frame."""
+    from reflow_plugin.disparity import held_out_residual
     from reflow_plugin.disparity_field import correct_disparity
 
     cam = _camera()

@@ -22,7 +22,8 @@ A canonical cloud built from monocular disparity at the wrong scale still lies i
 
 And, on the monocular-disparity path with sparse points, the depth prior's accuracy OUT OF
 SAMPLE (`prior_residual`): the median over frames of each frame's held-out residual must stay at
-or below `max_fit_residual` (0 = not checked). A frame's held-out residual is the vote-weighted
+or below `max_fit_residual` (0 = not checked; frames with fewer than 2 x 30 sparse points have no
+held-out residual, and where no frame has one the all-point median in sample stands in, named so). A frame's held-out residual is the vote-weighted
 median |relative residual| of every sparse point under the fits to the other half of the image's
 regions: the affine fit's (reflow_plugin.disparity.held_out_residual), or, where the smooth
 correction was kept, the affine fit + field's (reflow_plugin.disparity_field: 16 values per frame
@@ -202,6 +203,8 @@ def prior_residual(fits: Mapping, field_held_out: Mapping[str, float] | None = N
     """{"held_out", "inliers", "all"}: medians over the sparse fits of the depth prior's residuals
     (module docstring), or None without a sparse fit.
 
+    "held_out" is the median over the frames that have one (None: no frame has enough points to
+    hold half out; the check then gates on "all", in sample, and says so).
     fits: the alignment report's "fits" (reflow_plugin.disparity.summary plus "frames": {name:
     FrameFit.as_dict()}); field_held_out: {frame name: held-out residual of affine fit + field}
     for the frames whose disparity the smooth correction changed (their fits' own held-out
@@ -231,16 +234,17 @@ def check_initial_cloud(static: np.ndarray, groups: Sequence[DynamicGroup], came
     static = _subsample(static, MAX_POINTS)
     anchors = None if anchors is None or len(anchors) == 0 else _subsample(anchors, MAX_POINTS, 1)
     measurements: dict = {"static_points": len(static)}
-    held_out = None if fit_residual is None else fit_residual.get("held_out")
     if fit_residual is not None:
-        measurements.update(fit_residual=held_out, fit_residual_inliers=fit_residual.get("inliers"),
-                            fit_residual_all=fit_residual.get("all"))
-        if max_fit_residual > 0 and held_out is not None and held_out > max_fit_residual:
+        held_out = fit_residual.get("held_out")
+        gated, where = ((held_out, "on points held out by image region") if held_out is not None else
+                        (fit_residual.get("all"), "in sample (too few points per frame to hold half out)"))
+        measurements.update(fit_residual=gated, fit_residual_held_out=held_out is not None,
+                            fit_residual_inliers=fit_residual.get("inliers"), fit_residual_all=fit_residual.get("all"))
+        if max_fit_residual > 0 and gated is not None and gated > max_fit_residual:
             measurements["depth_prior_rejected"] = True
-            return CloudCheck(False, f"the depth prior disagrees with the sparse points: on points held out by image "
-                                     f"region its per-frame fits leave a median relative depth error of "
-                                     f"{held_out:.1%} (need <= {max_fit_residual:.0%}, "
-                                     f"--canonical_max_fit_residual)", measurements)
+            return CloudCheck(False, f"the depth prior disagrees with the sparse points: {where} its per-frame fits "
+                                     f"leave a median relative depth error of {gated:.1%} (need <= "
+                                     f"{max_fit_residual:.0%}, --canonical_max_fit_residual)", measurements)
     if not len(static) or not np.isfinite(static).all():
         return CloudCheck(False, "the static cloud is empty or not finite", measurements)
     coverage = check_cloud_against_cameras(static, cameras)
