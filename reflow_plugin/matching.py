@@ -13,8 +13,8 @@ b is only deformed and projected, which is all the full flow needs. Per directio
 on the pixels where the flow is valid and lands inside image b (and, with the `occlusion`
 component, passes the forward-backward test against the reverse direction's full flow; with
 `cam_occlusion`, the camera-flow terms pass the same test on the two camera flows; both need
-the reverse direction, so only `pair_mode both` runs them and the plugin refuses them in
-`pair_mode partner` before loading anything, `check_occlusion_mode`; with
+the reverse direction, so only `pair_mode both` runs them and a training run refuses them in
+`pair_mode partner` before its initial cloud is built, `check_occlusion_mode`; with
 `full_flow_dynamic_only`, a diagnostic of ours, L_mc and L_cr only on dynamic pixels, each pixel
 weighted as in the loss over all pixels). Static pixels: the rendered dynamic-ness channel (1 for
 dynamic Gaussians) below 0.5 of the pixel's opacity; with `cam_target_static` (the paper's

@@ -120,7 +120,6 @@ class ReFlowPlugin(Plugin):
             full_flow_dynamic_only=self.p.full_flow_region == "dynamic" and self.is_enabled("separation"),
             full_flow_min_share=self.p.full_flow_min_share,
             cam_target_static=self.p.cam_flow_target_static, blur_dynamic_only=self.p.flow_blur_region == "dynamic")
-        check_occlusion_mode(self.config.occlusion, self.config.cam_occlusion, self.p.pair_mode)
         self._blur_cache: dict[tuple[str, float], Tensor] = {}
         self._camera_motion: dict[tuple[int, int], float] = {}
         self._any_dynamic: tuple[Tensor, bool] | None = None  # (labels tensor, any dynamic): _has_dynamic
@@ -225,6 +224,8 @@ class ReFlowPlugin(Plugin):
             log.warning("comp_init is enabled but %s; the host's initial cloud is used instead", reason)
 
     def initial_point_cloud(self, ctx) -> PointCloud | None:
+        # a training run only (render.py must still load a run recorded with the switch on)
+        check_occlusion_mode(self.config.occlusion, self.config.cam_occlusion, self.p.pair_mode)
         cameras = self.depth_cameras = self._corrected_disparity(ctx)
         masks, source = training_masks(cameras, self.p.label_source, self._run_dir(ctx),
                                        aligned_depths(cameras, _metric_points(ctx)), self.p.mask_offsets,

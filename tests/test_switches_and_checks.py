@@ -22,18 +22,14 @@ W, H, F = 64, 48, 50.0
 
 # ------------------------------------------------------------------ 1. occlusion in partner mode
 def test_occlusion_switches_are_refused_in_partner_mode():
-    from reflow_plugin.params import ReFlowParams
-    from reflow_plugin.plugin import ReFlowPlugin
+    from reflow_plugin.matching import check_occlusion_mode
 
-    every = frozenset(ReFlowPlugin.components)
-    for component in ("occlusion", "cam_occlusion"):
-        enabled = every - {"occlusion", "cam_occlusion"} | {component}
-        with pytest.raises(ValueError, match=f"--enable {component} needs --pair_mode both"):
-            ReFlowPlugin({"ReFlowParams": ReFlowParams()}, enabled)  # partner is the default
-        plugin = ReFlowPlugin({"ReFlowParams": ReFlowParams(pair_mode="both")}, enabled)
-        assert plugin.is_enabled(component)
-    # the default components (both tests off) construct in partner mode
-    assert ReFlowPlugin({"ReFlowParams": ReFlowParams()}, every - {"occlusion", "cam_occlusion"})
+    for occlusion, cam_occlusion, named in ((True, False, "occlusion"), (False, True, "cam_occlusion"),
+                                            (True, True, "occlusion,cam_occlusion")):
+        with pytest.raises(ValueError, match=f"--enable {named} needs --pair_mode both"):
+            check_occlusion_mode(occlusion, cam_occlusion, "partner")
+        check_occlusion_mode(occlusion, cam_occlusion, "both")
+    check_occlusion_mode(False, False, "partner")
 
 
 def test_occlusion_in_partner_mode_is_one_error_line_before_loading(tiny_scene, tmp_path, capsys):
@@ -46,7 +42,12 @@ def test_occlusion_in_partner_mode_is_one_error_line_before_loading(tiny_scene, 
     assert stop.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--enable occlusion,cam_occlusion needs --pair_mode both" in err[0], err
-    assert not (tmp_path / "run" / "point_cloud").exists()
+    assert not (tmp_path / "run" / "point_cloud").exists() and not (tmp_path / "run" / "reflow" / "static.ply").exists()
+    # in pair_mode both the switches build and train
+    both = base_argv(tiny_scene, tmp_path / "both", 1, 1, "--plugin", "reflow", "--enable", "occlusion,cam_occlusion",
+                     "--pair_mode", "both", "--flow_vis_every", "0")
+    summary = train_from_argv(both)
+    assert {"occlusion", "cam_occlusion"} <= summary.trainer.hooks.plugins[0].enabled
 
 
 # ------------------------------------------------------------------ 2, 3. the inverse-depth refinement
