@@ -130,21 +130,22 @@ def _log_residuals(fit, d: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.nd
 
 
 def _fit(x: np.ndarray, y: np.ndarray, d: np.ndarray, z: np.ndarray, width: int, height: int, grid: int):
-    """(affine fit, field values [grid^2] or None, inlier count, affine sigma) fitted to the pairs
-    [K]: the affine fit, then the field on its inliers (None with too few or no affine fit)."""
+    """(affine fit or None, field values [grid^2] or None, indices of the affine fit's inliers [I])
+    of the pairs [K]: the affine fit, then the field on its inliers (None with fewer than
+    MIN_PER_CONTROL per control value)."""
     votes = coverage_weights(x, y, width, height)
     fit = fit_disparity(d, z, weights=votes) if len(z) else None
     if fit is None:
-        return None, None, 0, 0.0
+        return None, None, np.zeros(0, np.int64)
     r, ok = _log_residuals(fit, d, z)
     if not ok.any():
-        return fit, None, 0, 0.0
+        return fit, None, np.zeros(0, np.int64)
     inlier, sigma = _inliers(r[ok], votes[ok])
     keep = np.flatnonzero(ok)[inlier]
     if len(keep) < MIN_PER_CONTROL * grid * grid:
-        return fit, None, len(keep), sigma
+        return fit, None, keep
     B = bilinear_weights(x[keep], y[keep], width, height, grid)
-    return fit, fit_field(B, r[keep], grid, coverage_weights(x[keep], y[keep], width, height), sigma), len(keep), sigma
+    return fit, fit_field(B, r[keep], grid, coverage_weights(x[keep], y[keep], width, height), sigma), keep
 
 
 def correct_disparity(camera, disparity: np.ndarray, points: np.ndarray, grid: int = 4,
@@ -163,23 +164,21 @@ def correct_disparity(camera, disparity: np.ndarray, points: np.ndarray, grid: i
     height, width = disparity.shape
     x, y, z = _pixels(camera, points, width, height, mask)
     d = disparity[np.floor(y).astype(int), np.floor(x).astype(int)] if len(z) else np.zeros(0)
-    fit, values, count, _ = _fit(x, y, d, z, width, height, grid)
+    fit, values, inlier = _fit(x, y, d, z, width, height, grid)
     if fit is None:
         return disparity, {"corrected": False, "points": int(len(z)), "why": "no affine fit"}
-    r, ok = _log_residuals(fit, d, z)
-    inlier = np.zeros(len(r), bool)
-    inlier[np.flatnonzero(ok)[_inliers(r[ok], coverage_weights(x, y, width, height)[ok])[0]]] = True
-    report = {"corrected": False, "points": count, "residual": float(np.median(np.abs(np.expm1(r[inlier]))))
-              if inlier.any() else None}
+    r, _ = _log_residuals(fit, d, z)
+    report = {"corrected": False, "points": len(inlier), "residual": float(np.median(np.abs(np.expm1(r[inlier]))))
+              if len(inlier) else None}
     if values is None:
-        return disparity, dict(report, why=f"{count} inliers (need {MIN_PER_CONTROL * grid * grid})")
+        return disparity, dict(report, why=f"{len(inlier)} inliers (need {MIN_PER_CONTROL * grid * grid})")
     # out of sample: each half of the image's regions judged by the fits to the other half
     fold = region_folds(x, y, width, height)
     votes = coverage_weights(x, y, width, height)
     before, after, weights = [], [], []
     for train in (fold, ~fold):
         held = ~train
-        fold_fit, fold_values, _, _ = _fit(x[train], y[train], d[train], z[train], width, height, grid)
+        fold_fit, fold_values, _ = _fit(x[train], y[train], d[train], z[train], width, height, grid)
         if fold_fit is None or fold_values is None or not held.any():
             return disparity, dict(report, why="too few points in one half of the image's regions")
         r_held, ok_held = _log_residuals(fold_fit, d[held], z[held])
