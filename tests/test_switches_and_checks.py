@@ -275,6 +275,18 @@ def test_a_frozen_run_with_more_views_than_the_window_is_stopped():
     assert 250 < step < 250 + 50 and "drawn again gave their first loss again" in str(stop.value)
 
 
+def test_a_frozen_run_with_more_views_than_the_guards_wait_is_stopped():
+    """1000 views: the first window's views come round only after 1000 steps, past WAIT x 200."""
+    from baselines.fourdgs.stall_guard import WAIT, StallGuard, TrainingStalled
+
+    cams = _views(1000)
+    guard = StallGuard(200)
+    with pytest.raises(TrainingStalled, match="loss stayed flat"):
+        for step, batch in enumerate(_sampled(cams, 2500), 1):
+            guard.observe(_ctx(cams, batch, 0.1 + 0.0001 * batch[0].uid))
+    assert WAIT * 200 <= 1000 < step < 1100
+
+
 def test_a_learning_run_with_many_views_is_not_stopped():
     from baselines.fourdgs.stall_guard import StallGuard
 

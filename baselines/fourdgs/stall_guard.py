@@ -15,9 +15,10 @@ guard raises `TrainingStalled` (a ValueError: train.py prints one `error:` line 
   steps, or, for every batch of views first drawn in those steps and drawn again later, between
   its first and its latest loss. The window stays open past `iterations` until REPEATS such
   batches were drawn again (or all of them, with fewer batches; at most WAIT x `iterations`
-  steps), so the test works for any number of views: with 250 views at batch size 1 no batch
-  repeats within 200 steps (each pass draws every view once) and the first repeats come from
-  step 251 on. A healthy loss falls by orders of magnitude more than 1e-4 between a view's first
+  steps or two passes over the training views, whichever is longer), so the test works for any
+  number of views: with 250 views at batch size 1 no batch repeats within 200 steps (each pass
+  draws every view once), the first repeats come from step 251 on and a frozen run stops at
+  step 260; with 1000 views at step 1048 (seeded sampler). A healthy loss falls by orders of magnitude more than 1e-4 between a view's first
   draw and its next; a run whose renders never change gives every view the same loss again.
 
 Steps in which every Gaussian is hidden on purpose (ctx.hidden: ReFlow's coarse stage hides the
@@ -86,7 +87,7 @@ class StallGuard:
         elif self.seen <= self.iterations:
             self.first[key] = loss
         enough = len(self.again) >= min(REPEATS, len(self.first))
-        if self.seen >= self.iterations and (enough or self.seen >= WAIT * self.iterations):
+        if self.seen >= self.iterations and (enough or self.seen >= self._deadline(ctx)):
             self.decided = True
             if self._flat():
                 raise TrainingStalled(
@@ -95,6 +96,12 @@ class StallGuard:
                     f"{len(self.losses)}; {len(self.again)} batches of views drawn again gave their first loss "
                     f"again); the Gaussians do not change the renders ({describe_cloud(ctx)}). Likely an "
                     f"initial cloud outside the views or at the wrong scale")
+
+    def _deadline(self, ctx) -> int:
+        """Steps the flat-loss test waits at most for batches drawn again: WAIT x the window, and
+        at least two passes over the training views (each view drawn once per pass)."""
+        views = len(getattr(ctx, "train_cameras", None) or ())
+        return max(WAIT * self.iterations, 2 * -(-views // max(len(ctx.batch), 1)))
 
     def _flat(self) -> bool:
         if max(self.losses) - min(self.losses) <= self.tolerance:
