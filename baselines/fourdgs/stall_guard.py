@@ -18,8 +18,9 @@ guard raises `TrainingStalled` (a ValueError: train.py prints one `error:` line 
   steps or two passes over the training views, whichever is longer), so the test works for any
   number of views: with 250 views at batch size 1 no batch repeats within 200 steps (each pass
   draws every view once), the first repeats come from step 251 on and a frozen run stops at
-  step 260; with 1000 views at step 1048 (seeded sampler). A healthy loss falls by orders of magnitude more than 1e-4 between a view's first
-  draw and its next; a run whose renders never change gives every view the same loss again.
+  step 260; with 1000 views at step 1048 (seeded sampler). A healthy loss falls by orders of
+  magnitude more than 1e-4 between a view's first draw and its next; a run whose renders never
+  change gives every view the same loss again.
 
 Steps in which every Gaussian is hidden on purpose (ctx.hidden: ReFlow's coarse stage hides the
 dynamic Gaussians, all of them when every Gaussian is labelled dynamic) are not counted: an empty

@@ -23,10 +23,11 @@ A canonical cloud built from monocular disparity at the wrong scale still lies i
 And, on the monocular-disparity path with sparse points, the depth prior's accuracy OUT OF
 SAMPLE (`prior_residual`): the median over frames of each frame's held-out residual must stay at
 or below `max_fit_residual` (0 = not checked; frames with fewer than 2 x 30 sparse points have no
-held-out residual, and where no frame has one the all-point median in sample stands in, named so). A frame's held-out residual is the vote-weighted
-median |relative residual| of every sparse point under the fits to the other half of the image's
-regions: the affine fit's (reflow_plugin.disparity.held_out_residual), or, where the smooth
-correction was kept, the affine fit + field's (reflow_plugin.disparity_field: 16 values per frame
+held-out residual, and where no frame has one the all-point median in sample stands in, named
+so). A frame's held-out residual is the vote-weighted median |relative residual| of every sparse
+point under the fits to the other half of the image's regions: the affine fit's
+(reflow_plugin.disparity.held_out_residual), or, where the smooth correction was kept, the
+affine fit + field's (reflow_plugin.disparity_field: 16 values per frame
 fitted to the same points, so the corrected disparity's in-sample residual says little). Beside
 it the in-sample medians are reported: `fit_residual_inliers` (the inliers of each fit, what
 the gate read up to commit 9095855) and `fit_residual_all` (every point). A network's depth that
@@ -38,8 +39,8 @@ And, with sparse points, the cloud's accuracy where they can judge it: per spars
 sees on a covered cell, |median cloud depth in the cell / the point's depth - 1|; its median must
 stay at or below `max_depth_error` (0 = not checked). This one is IN SAMPLE: the cloud's depth was
 fitted to the same points, so it is a lower bound of the cloud's error (the fit's own held-out
-residual above is the out-of-sample measure of the same prior). Measured: 0.8% on NVIDIA Balloon1 through
-prepare and 3.1-4.6% on the real-priors scenes (comp_init helps on all of them), 7.8% on DAVIS
+residual above is the out-of-sample measure of the same prior). Measured: 0.8% on NVIDIA
+Balloon1 through prepare and 3.1-4.6% on the real-priors scenes (comp_init helps on all of them), 7.8% on DAVIS
 lady-running (flow provider) and 14% on Balloon1's monocular disparity (comp_init cost the
 background on both: README "Real captures").
 

@@ -4,7 +4,8 @@ Alignment, by provider:
 - depth provider (monocular disparity), cameras fixed, with metric evidence (`anchors`: the
   host's sparse points, and/or the dataset's near/far bounds): scale comes first. Each frame's
   affine map in inverse depth is fitted to that evidence (reflow_plugin.disparity), then refined
-  jointly (inverse.py; each sparse point with its region vote, as in the fits). `refine=False` stops after the per-frame fits.
+  jointly (inverse.py; each sparse point with its region vote, as in the fits). `refine=False`
+  stops after the per-frame fits.
 - otherwise (flow provider, free poses, no evidence): the DUSt3R-style coarse-to-fine alignment
   (coarse_to_fine.py, alignment.py).
 `align=False` is the paper's "w/o align": raw per-frame pointmaps with the dataset's cameras.
