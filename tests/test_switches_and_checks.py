@@ -330,6 +330,26 @@ def test_steps_with_every_gaussian_hidden_are_not_counted():
             partly.observe(_ctx(cams, batch, 0.5, alpha=0.0, hidden=some))
 
 
+def test_a_stage_with_every_pixel_weighted_out_is_not_a_flat_loss():
+    """Motion masks covering every frame: the coarse stage's loss is exactly 0 (measured on a
+    12-frame 32x32 scene, --disable comp_init: stopped at iteration 30 as "flat, 0 to 0"); the
+    fine stage learns. Left out of the flat-loss test; a render that stays empty still counts."""
+    from baselines.fourdgs.stall_guard import StallGuard, TrainingStalled
+
+    cams = _views(4)
+    guard = StallGuard(50)
+    for batch in _sampled(cams, 120):
+        guard.observe(_ctx(cams, batch, 0.0))
+    assert guard.zero_losses == 120 and not guard.losses and not guard.decided
+    for step, batch in enumerate(_sampled(cams, 120), 1):
+        guard.observe(_ctx(cams, batch, 1.0 / step))
+    assert guard.decided and guard.seen == 240
+    empty = StallGuard(50)
+    with pytest.raises(TrainingStalled, match="no Gaussian was visible"):
+        for batch in _sampled(cams, 120):
+            empty.observe(_ctx(cams, batch, 0.0, alpha=0.0))
+
+
 def test_reflow_marks_the_hidden_gaussians_in_the_coarse_stage():
     from reflow_plugin.plugin import HIDDEN_OPACITY, ReFlowPlugin
 

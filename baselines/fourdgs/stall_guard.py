@@ -22,10 +22,12 @@ guard raises `TrainingStalled` (a ValueError: train.py prints one `error:` line 
   magnitude more than 1e-4 between a view's first draw and its next; a run whose renders never
   change gives every view the same loss again.
 
-Steps in which every Gaussian is hidden on purpose (ctx.hidden: ReFlow's coarse stage hides the
-dynamic Gaussians, all of them when every Gaussian is labelled dynamic) are not counted: an empty
-render or a flat loss there says nothing about the cloud, and the run recovers when the stage
-that shows them starts.
+A loss of exactly 0 is left out of the flat-loss test (the step had nothing to fit: every pixel
+weighted out, as ReFlow's coarse stage does where motion masks cover the whole frame); the
+visibility test still counts the step. Steps in which every Gaussian is hidden on purpose
+(ctx.hidden: ReFlow's coarse stage hides the dynamic Gaussians, all of them when every Gaussian
+is labelled dynamic) are not counted at all: an empty render or a flat loss there says nothing
+about the cloud, and the run recovers when the stage that shows them starts.
 
 Neither fired on a healthy run (the synthetic suite in both priors modes, the static scene). The
 message gives what the cloud looks like from the cameras (how many views see a Gaussian centre,
@@ -60,6 +62,8 @@ class StallGuard:
         self.first: dict[tuple[int, ...], float] = {}  # batch -> its loss when first drawn (first window)
         self.again: dict[tuple[int, ...], float] = {}  # batch of `first` -> its latest loss since
         self.decided = False  # the flat-loss test has run
+        self.zero_losses = 0  # steps whose loss was exactly 0 (not in the flat-loss test)
+        self.tested = 0  # steps in the flat-loss test
 
     @property
     def armed(self) -> bool:
@@ -80,20 +84,24 @@ class StallGuard:
         if self.decided:
             return
         loss = float(ctx.metrics["loss"]) if "loss" in ctx.metrics else float(ctx.loss.detach())
+        if loss == 0.0:  # every pixel weighted out (a plugin's coarse stage on masks covering the frame)
+            self.zero_losses += 1
+            return
+        self.tested += 1
         key = tuple(sorted(c.uid for c in ctx.batch))
-        if self.seen <= self.iterations:
+        if self.tested <= self.iterations:
             self.losses.append(loss)
         if key in self.first:
             self.again[key] = loss
-        elif self.seen <= self.iterations:
+        elif self.tested <= self.iterations:
             self.first[key] = loss
         enough = len(self.again) >= min(REPEATS, len(self.first))
-        if self.seen >= self.iterations and (enough or self.seen >= self._deadline(ctx)):
+        if self.tested >= self.iterations and (enough or self.tested >= self._deadline(ctx)):
             self.decided = True
             if self._flat():
                 raise TrainingStalled(
                     f"training cannot learn: the loss stayed flat to {self.tolerance:g} over the first "
-                    f"{self.seen} iterations ({min(self.losses):.6g} to {max(self.losses):.6g} over the first "
+                    f"{self.tested} iterations ({min(self.losses):.6g} to {max(self.losses):.6g} over the first "
                     f"{len(self.losses)}; {len(self.again)} batches of views drawn again gave their first loss "
                     f"again); the Gaussians do not change the renders ({describe_cloud(ctx)}). Likely an "
                     f"initial cloud outside the views or at the wrong scale")
