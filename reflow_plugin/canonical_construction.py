@@ -55,7 +55,9 @@ class CanonicalConstruction:
 
     def _corrected_disparity(self, ctx) -> list:
         """The training cameras, their disparity with the smooth per-frame correction (disparity_field.py)
-        where it was kept; the cameras themselves without disparity, sparse points or `disparity_field`."""
+        where it was kept; the cameras themselves without disparity, sparse points or `disparity_field`.
+        Fitted to the sparse points outside the dataset's motion masks; without them (estimated masks
+        come later, from this depth) to every sparse point, the field's biweight the only guard."""
         cameras = ctx.train_cameras
         points = _metric_points(ctx)
         if (self.p.disparity_field == 0 or len(points) == 0
@@ -64,7 +66,8 @@ class CanonicalConstruction:
         out, reports = [], []
         for cam in cameras:
             disparity = cam.disparity.detach().cpu().numpy().astype(np.float64)
-            corrected, report = correct_disparity(cam, disparity, points, self.p.disparity_field)
+            static = None if cam.mask is None else cam.mask.detach().cpu().numpy() > 0.5  # the dataset's masks
+            corrected, report = correct_disparity(cam, disparity, points, self.p.disparity_field, static)
             reports.append(report)
             out.append(replace(cam, disparity=torch.as_tensor(corrected, dtype=cam.disparity.dtype,
                                                               device=cam.disparity.device))
@@ -73,7 +76,9 @@ class CanonicalConstruction:
         before = float(np.median([r["residual"] for r in done])) if done else None
         after = float(np.median([r["residual_corrected"] for r in done])) if done else None
         self.info["disparity_field"] = {"grid": self.p.disparity_field, "frames": len(cameras),
-                                        "corrected": len(done), "residual": before, "residual_corrected": after}
+                                        "corrected": len(done), "residual": before, "residual_corrected": after,
+                                        "held_out": {c.image_name: r["held_out_after"]  # what the check gates on
+                                                     for c, r in zip(cameras, reports) if r["corrected"]}}
         if done:
             log.info("disparity: a smooth correction kept in %d of %d frames (median residual at the sparse "
                      "points %.3f -> %.3f)", len(done), len(cameras), before, after)
@@ -146,7 +151,7 @@ class CanonicalConstruction:
         same prior). Recorded in info["canonical_check"].
         """
         from .canonical import build_canonical_space, options_from_params
-        from .canonical.check import check_initial_cloud
+        from .canonical.check import check_initial_cloud, prior_residual
 
         options = options_from_params(self.p)
         options.device = str(ctx.device)
@@ -165,8 +170,8 @@ class CanonicalConstruction:
                                           cache_dir=self._run_dir(ctx) / "canonical",
                                           progress=not ctx.args.run.quiet, anchors=anchors)
             static, dynamic, times, groups, described = self._compose(ctx, space, masks)
-            fits = space.report["alignment"].get("fits") or {}
-            residual = fits.get("median_residual") if fits.get("sources", {}).get("sparse") else None
+            residual = prior_residual(space.report["alignment"].get("fits") or {},
+                                      self.info.get("disparity_field", {}).get("held_out", {}))
             check = check_initial_cloud(static.points, groups, ctx.train_cameras, anchors, residual,
                                         self.p.canonical_max_fit_residual, self.p.canonical_max_depth_error)
             if check.passed or keep:

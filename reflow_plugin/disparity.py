@@ -20,7 +20,10 @@ cameras fixed, the scene already has a metric scale; each frame's (s_n, o_n) is 
    accepted with at least MIN_POINTS inliers (|r| < 3 sigma), s > 0, at most MAX_BEHIND of the
    frame's valid pixels with s d + o <= 0 (behind the camera / at infinity), and, when the
    dataset has near/far bounds, the frame's median fitted depth inside
-   [near / BOUNDS_SLACK, far * BOUNDS_SLACK].
+   [near / BOUNDS_SLACK, far * BOUNDS_SLACK]. Its report: `residual` (median |r| of the
+   inliers), `residual_all` (of every point), both in sample, and `held_out` (fit_frames: the
+   vote-weighted median |r| of every point under the fit to the other half of the image's
+   regions, `held_out_residual`: what the prior's error is on points the fit did not see).
 2. bounds (fallback): the frame's disparity percentiles [2%, 98%] mapped to [1 / far, 1 / near]
    (`poses_bounds.npy` near/far: the depth range of that frame's points).
 3. neighbour (fallback): the nearest frame in time with a sparse fit lends its depth range: the
@@ -45,6 +48,9 @@ MAX_POLISH_LOSS = 1.1  # the IRLS polish is kept when its median |residual| is a
 COVERAGE_CELLS = 16  # one vote per cell of a grid with this many cells along the image's longer side
 SAMPLES = 200  # 2-point samples of the least-median-of-squares start
 SCORE_POINTS = 2048  # above this many points, each sample's median is taken on this many drawn by vote
+HELD_OUT_MIN = 30  # pairs each half needs for a held-out residual
+REGION_BLOCKS = 4  # held-out folds: a checkerboard with this many squares along the longer side
+FLAT_DISPARITY = 1e-6  # disparity spread (relative to its largest magnitude) below which a map is flat
 
 
 def project(points: np.ndarray, camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -66,7 +72,9 @@ class FrameFit:
     source: str
     points: int = 0  # sparse points that projected into the frame
     inliers: int = 0
-    residual: float | None = None  # median |relative residual| of the inliers
+    residual: float | None = None  # median |relative residual| of the inliers (in sample)
+    residual_all: float | None = None  # median |relative residual| of every point (in sample)
+    held_out: float | None = None  # out of sample: fit_frames' held_out_residual (None: not measured)
     rejected: list[str] = field(default_factory=list)  # why better sources were not used
 
     @property
@@ -87,7 +95,8 @@ class FrameFit:
 
     def as_dict(self) -> dict:
         return {"scale": self.scale, "shift": self.shift, "source": self.source, "points": self.points,
-                "inliers": self.inliers, "residual": self.residual, "rejected": self.rejected}
+                "inliers": self.inliers, "residual": self.residual, "residual_all": self.residual_all,
+                "held_out": self.held_out, "rejected": self.rejected}
 
 
 def coverage_weights(x: np.ndarray, y: np.ndarray, width: int, height: int,
@@ -143,8 +152,9 @@ def fit_disparity(disparity: np.ndarray, depth: np.ndarray, iterations: int = 10
     """Robust (s, o) with 1 / depth ~ s * disparity + o from pairs [K] (see the module docstring).
 
     weights: [K] votes of the pairs (coverage_weights; None: one each) in the medians and the polish.
-    Returns None with fewer than MIN_POINTS usable pairs, no positive-scale solution or fewer
-    than MIN_POINTS inliers. The FrameFit's source is "sparse".
+    Returns None with fewer than MIN_POINTS usable pairs, a flat disparity at the pairs (spread at
+    most FLAT_DISPARITY of its magnitude: the scale is not determined), no positive-scale solution
+    or fewer than MIN_POINTS inliers. The FrameFit's source is "sparse".
     """
     d, z = np.asarray(disparity, np.float64).ravel(), np.asarray(depth, np.float64).ravel()
     votes = np.ones(len(d)) if weights is None else np.asarray(weights, np.float64).ravel()
@@ -152,6 +162,8 @@ def fit_disparity(disparity: np.ndarray, depth: np.ndarray, iterations: int = 10
     d, z, votes = d[ok], z[ok], votes[ok]
     if len(d) < MIN_POINTS:
         return None
+    if np.ptp(d) <= FLAT_DISPARITY * max(float(np.abs(d).max()), 1e-30):
+        return None  # a flat map: every scale fits as well (least squares would return an arbitrary one)
     rng = np.random.default_rng(seed)
     # least median of squares over 2-point samples (drawn by vote: every region as likely), vectorised
     a, b = rng.choice(len(d), (2, SAMPLES), p=votes / votes.sum())
@@ -203,7 +215,38 @@ def fit_disparity(disparity: np.ndarray, depth: np.ndarray, iterations: int = 10
     if inliers.sum() < MIN_POINTS:
         return None
     return FrameFit(s, o, "sparse", points=len(d), inliers=int(inliers.sum()),
-                    residual=float(np.median(np.abs(r[inliers]))))
+                    residual=float(np.median(np.abs(r[inliers]))), residual_all=float(np.median(np.abs(r))))
+
+
+def region_folds(x: np.ndarray, y: np.ndarray, width: int, height: int, blocks: int = REGION_BLOCKS) -> np.ndarray:
+    """[K] bool: True for pixels (x, y) [K] on the "black" squares of a checkerboard with `blocks`
+    squares along the image's longer side. Held-out points by image region: a point is never
+    judged by a fit to its immediate neighbours (random halves put a training point next to
+    almost every held-out one), while each half still spans the whole image and its depth range."""
+    size = max(width, height) / max(blocks, 1)
+    col = np.floor(np.asarray(x, np.float64) / size).astype(np.int64)
+    row = np.floor(np.asarray(y, np.float64) / size).astype(np.int64)
+    return (row + col) % 2 == 0
+
+
+def held_out_residual(d: np.ndarray, z: np.ndarray, x: np.ndarray, y: np.ndarray, width: int,
+                      height: int) -> float | None:
+    """Vote-weighted median |relative residual| of every sparse pair [K] under the affine fit to
+    the OTHER half (region_folds), both halves in turn; None when a half has fewer than
+    HELD_OUT_MIN pairs (a fit to 15 points of a real-priors frame was off by 10x in scale: the
+    figure would measure the small sample, not the prior) or no fit."""
+    fold = region_folds(x, y, width, height)
+    if min(int(fold.sum()), int((~fold).sum())) < HELD_OUT_MIN:
+        return None
+    votes = coverage_weights(x, y, width, height)
+    held, weights = [], []
+    for train in (fold, ~fold):
+        fit = fit_disparity(d[train], z[train], weights=votes[train])
+        if fit is None or not (~train).any():
+            return None
+        held.append(np.abs(_residual(d[~train], z[~train], fit.scale, fit.shift)))
+        weights.append(votes[~train])
+    return float(weighted_median(np.concatenate(held), np.concatenate(weights)))
 
 
 def _valid_disparity(disparity: np.ndarray) -> np.ndarray:
@@ -261,8 +304,15 @@ def sparse_pairs(camera, disparity: np.ndarray, points: np.ndarray,
 def sparse_votes(camera, disparity: np.ndarray, points: np.ndarray,
                  mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """sparse_pairs plus each pair's vote [K] (coverage_weights of its pixel)."""
+    d, z, votes, _, _ = sparse_pixels(camera, disparity, points, mask)
+    return d, z, votes
+
+
+def sparse_pixels(camera, disparity: np.ndarray, points: np.ndarray, mask: np.ndarray | None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """sparse_votes plus each pair's pixel coordinates x [K], y [K]."""
     if len(points) == 0:
-        return np.zeros(0), np.zeros(0), np.zeros(0)
+        return np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0)
     x, y, z = project(points, camera)
     col, row = np.floor(x).astype(int), np.floor(y).astype(int)
     h, w = np.shape(disparity)
@@ -270,7 +320,7 @@ def sparse_votes(camera, disparity: np.ndarray, points: np.ndarray,
     if mask is not None:
         seen[seen] &= ~np.asarray(mask, bool)[row[seen], col[seen]]
     votes = coverage_weights(x[seen], y[seen], w, h)
-    return np.asarray(disparity, np.float64)[row[seen], col[seen]], z[seen], votes
+    return np.asarray(disparity, np.float64)[row[seen], col[seen]], z[seen], votes, x[seen], y[seen]
 
 
 def camera_bounds(camera) -> tuple[float, float] | None:
@@ -295,8 +345,10 @@ def fit_frames(cameras: Sequence, disparities: Sequence[np.ndarray], points: np.
     counts: list[int] = []
     for k, (cam, disparity) in enumerate(zip(cameras, disparities)):
         bounds = camera_bounds(cam) if use_bounds else None
-        d, z, votes = sparse_votes(cam, disparity, points, None if masks is None else masks[k])
+        d, z, votes, x, y = sparse_pixels(cam, disparity, points, None if masks is None else masks[k])
         fit = fit_disparity(d, z, weights=votes) if len(d) else None
+        if fit is not None:
+            fit.held_out = held_out_residual(d, z, x, y, *np.shape(disparity)[::-1])
         counts.append(len(d))
         why = [f"{len(d)} sparse points" if fit is None else None]
         if fit is not None:
@@ -324,14 +376,22 @@ def fit_frames(cameras: Sequence, disparities: Sequence[np.ndarray], points: np.
 
 
 def summary(fits: Sequence[FrameFit]) -> dict:
-    """{source: count} plus the median residual of the sparse fits (for reports)."""
+    """{source: count} plus the medians over the sparse fits of their residuals (for reports):
+    median_residual (inliers, in sample), median_residual_all (every point, in sample) and
+    median_held_out (out of sample, fit_frames' held_out_residual; the one the check gates on)."""
     counts: dict[str, int] = {}
     for fit in fits:
         counts[fit.source] = counts.get(fit.source, 0) + 1
-    residuals = [f.residual for f in fits if f.residual is not None]
-    return {"sources": counts, "median_residual": float(np.median(residuals)) if residuals else None}
+
+    def median(name: str) -> float | None:
+        values = [getattr(f, name) for f in fits if getattr(f, name) is not None]
+        return float(np.median(values)) if values else None
+
+    return {"sources": counts, "median_residual": median("residual"), "median_residual_all": median("residual_all"),
+            "median_held_out": median("held_out")}
 
 
 __all__ = ["BOUNDS_SLACK", "FrameFit", "MAX_BEHIND", "MIN_POINTS", "bounds_fit", "camera_bounds", "coverage_weights",
-           "fit_disparity", "fit_frames", "neighbour_fit", "project", "sparse_pairs", "sparse_votes", "summary",
+           "fit_disparity", "fit_frames", "held_out_residual", "neighbour_fit", "project", "region_folds",
+           "sparse_pairs", "sparse_pixels", "sparse_votes", "summary",
            "tukey_weights", "weighted_median"]

@@ -31,8 +31,13 @@ points per frame inside 3 sigmas), and the field bent the truck up to 13% farthe
 0.054 with the affine fit alone, 0.109 corrected; with the re-estimated scale 0.056). Where no
 static point exists (behind a large moving object) the field is an interpolation of its
 surroundings and can still be a few percent off there.
-It is kept only if it lowers the median |residual| on points it was NOT fitted to (two folds,
-seeded) by at least MIN_GAIN of it and MIN_ABS_GAIN; then it is refitted on all points. The corrected disparity is
+It is kept only if it lowers the median |residual| on points it was NOT fitted to by at least
+MIN_GAIN of it and MIN_ABS_GAIN. Out of sample throughout: the points are split by image region
+(reflow_plugin.disparity.region_folds: a checkerboard of 4 squares along the longer side), and
+for each half the affine fit, its inlier gate and the field are fitted on the other half alone;
+the held-out median is vote-weighted like the fit and taken over every held-out point (the
+outliers included: a median over them is robust, and gating before the split would judge the
+field only where it already agrees). Kept, it is the one fitted to all points. The corrected disparity is
 
     d'(p) = ((s d(p) + o) exp(g(p)) - o) / s
 
@@ -44,7 +49,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .disparity import coverage_weights, fit_disparity, project, tukey_weights, weighted_median
+from .disparity import coverage_weights, fit_disparity, project, region_folds, tukey_weights, weighted_median
 
 SMOOTH = 1e-3  # weight of the neighbouring-control differences
 SHRINK = 1e-5  # weight pulling every control value toward 0 (no correction)
@@ -110,52 +115,89 @@ def field_map(values: np.ndarray, width: int, height: int, grid: int) -> np.ndar
     return (bilinear_weights(xs.ravel() + 0.5, ys.ravel() + 0.5, width, height, grid) @ values).reshape(height, width)
 
 
+def _inliers(r: np.ndarray, votes: np.ndarray) -> tuple[np.ndarray, float]:
+    """(inlier mask [K]: within 3 robust sigmas of the vote-weighted median, that sigma) of log residuals [K]."""
+    centre = float(weighted_median(r, votes))
+    sigma = 1.4826 * float(weighted_median(np.abs(r - centre), votes)) + 1e-9
+    return np.abs(r - centre) <= 3.0 * max(sigma, 1e-3), sigma
+
+
+def _log_residuals(fit, d: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(log residuals r [K] = log((1 / z) / (s d + o)), usable [K]: s d + o > 0) of an affine fit."""
+    u = fit.inverse(d)
+    ok = (u > 0) & np.isfinite(u)
+    return np.log(np.where(ok, 1.0 / (z * np.where(ok, u, 1.0)), 1.0)), ok
+
+
+def _fit(x: np.ndarray, y: np.ndarray, d: np.ndarray, z: np.ndarray, width: int, height: int, grid: int):
+    """(affine fit or None, field values [grid^2] or None, indices of the affine fit's inliers [I])
+    of the pairs [K]: the affine fit, then the field on its inliers (None with fewer than
+    MIN_PER_CONTROL per control value)."""
+    votes = coverage_weights(x, y, width, height)
+    fit = fit_disparity(d, z, weights=votes) if len(z) else None
+    if fit is None:
+        return None, None, np.zeros(0, np.int64)
+    r, ok = _log_residuals(fit, d, z)
+    if not ok.any():
+        return fit, None, np.zeros(0, np.int64)
+    inlier, sigma = _inliers(r[ok], votes[ok])
+    keep = np.flatnonzero(ok)[inlier]
+    if len(keep) < MIN_PER_CONTROL * grid * grid:
+        return fit, None, keep
+    B = bilinear_weights(x[keep], y[keep], width, height, grid)
+    return fit, fit_field(B, r[keep], grid, coverage_weights(x[keep], y[keep], width, height), sigma), keep
+
+
 def correct_disparity(camera, disparity: np.ndarray, points: np.ndarray, grid: int = 4,
-                      mask: np.ndarray | None = None, seed: int = 0) -> tuple[np.ndarray, dict]:
+                      mask: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """(corrected disparity [H, W], report) of one frame; the input unchanged when no field is kept.
 
     camera: with K, viewmat (reflow_plugin.disparity.project); disparity [H, W] at the camera's
     resolution; points [P, 3] metric static points; mask: [H, W] bool pixels to ignore.
     Report: {"corrected": bool, "points": inliers used, "residual": median |relative residual| of
-    the affine fit, "residual_corrected": the same after the correction (when kept), "why": reason
-    when not kept}.
+    the affine fit's inliers (in sample), "held_out_before" / "held_out_after": the vote-weighted
+    median |relative residual| of every point of one half of the image's regions under the affine
+    fit / affine fit + field fitted to the other half (both halves in turn), "residual_corrected":
+    the in-sample inlier median after the correction (when kept), "why": reason when not kept}.
     """
     disparity = np.asarray(disparity, np.float64)
     height, width = disparity.shape
     x, y, z = _pixels(camera, points, width, height, mask)
     d = disparity[np.floor(y).astype(int), np.floor(x).astype(int)] if len(z) else np.zeros(0)
-    fit = fit_disparity(d, z, weights=coverage_weights(x, y, width, height)) if len(z) else None
+    fit, values, inlier = _fit(x, y, d, z, width, height, grid)
     if fit is None:
         return disparity, {"corrected": False, "points": int(len(z)), "why": "no affine fit"}
-    u = fit.inverse(d)
-    ok = (u > 0) & np.isfinite(u)
-    r = np.log(np.where(ok, 1.0 / (z * np.where(ok, u, 1.0)), 1.0))
+    r, _ = _log_residuals(fit, d, z)
+    report = {"corrected": False, "points": len(inlier), "residual": float(np.median(np.abs(np.expm1(r[inlier]))))
+              if len(inlier) else None}
+    if values is None:
+        return disparity, dict(report, why=f"{len(inlier)} inliers (need {MIN_PER_CONTROL * grid * grid})")
+    # out of sample: each half of the image's regions judged by the fits to the other half
+    fold = region_folds(x, y, width, height)
     votes = coverage_weights(x, y, width, height)
-    centre = float(weighted_median(r[ok], votes[ok])) if ok.any() else 0.0
-    sigma = 1.4826 * float(weighted_median(np.abs(r[ok] - centre), votes[ok])) + 1e-9 if ok.any() else 0.0
-    inlier = ok & (np.abs(r - centre) <= 3.0 * max(sigma, 1e-3))
-    x, y, r = x[inlier], y[inlier], r[inlier]
-    votes = coverage_weights(x, y, width, height)
-    report = {"corrected": False, "points": int(len(r)), "residual": float(np.median(np.abs(np.expm1(r))))
-              if len(r) else None}
-    if len(r) < MIN_PER_CONTROL * grid * grid:
-        return disparity, dict(report, why=f"{len(r)} inliers (need {MIN_PER_CONTROL * grid * grid})")
-    B = bilinear_weights(x, y, width, height, grid)
-    fold = np.random.default_rng(seed).permutation(len(r)) % 2 == 0
-    before, after = [], []
+    before, after, weights = [], [], []
     for train in (fold, ~fold):
-        values = fit_field(B[train], r[train], grid, votes[train], sigma)
-        before.append(np.abs(r[~train]))
-        after.append(np.abs(r[~train] - B[~train] @ values))
-    held_before, held_after = float(np.median(np.concatenate(before))), float(np.median(np.concatenate(after)))
+        held = ~train
+        fold_fit, fold_values, _ = _fit(x[train], y[train], d[train], z[train], width, height, grid)
+        if fold_fit is None or fold_values is None or not held.any():
+            return disparity, dict(report, why="too few points in one half of the image's regions")
+        r_held, ok_held = _log_residuals(fold_fit, d[held], z[held])
+        field = bilinear_weights(x[held], y[held], width, height, grid) @ fold_values
+        # |z u - 1| (reflow_plugin.disparity's relative residual), u the inverse depth read at the point
+        before.append(np.where(ok_held, np.abs(np.expm1(-r_held)), 1.0))  # no depth: a 100% error
+        after.append(np.where(ok_held, np.abs(np.expm1(field - r_held)), 1.0))
+        weights.append(votes[held])
+    weights = np.concatenate(weights)
+    held_before = float(weighted_median(np.concatenate(before), weights))
+    held_after = float(weighted_median(np.concatenate(after), weights))
     report.update(held_out_before=held_before, held_out_after=held_after)
     if not (held_after <= (1.0 - MIN_GAIN) * held_before and held_before - held_after >= MIN_ABS_GAIN):
         return disparity, dict(report, why="no held-out gain")
-    values = fit_field(B, r, grid, votes, sigma)
     g = field_map(values, width, height, grid)
     full = fit.inverse(disparity)
     corrected = np.where(full > 0, (full * np.exp(g) - fit.shift) / fit.scale, disparity)
-    report.update(corrected=True, residual_corrected=float(np.median(np.abs(np.expm1(r - B @ values)))),
+    B = bilinear_weights(x[inlier], y[inlier], width, height, grid)
+    report.update(corrected=True, residual_corrected=float(np.median(np.abs(np.expm1(r[inlier] - B @ values)))),
                   field_range=[float(values.min()), float(values.max())])
     return corrected, report
 

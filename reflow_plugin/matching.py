@@ -12,7 +12,9 @@ b is only deformed and projected, which is all the full flow needs. Per directio
 
 on the pixels where the flow is valid and lands inside image b (and, with the `occlusion`
 component, passes the forward-backward test against the reverse direction's full flow; with
-`cam_occlusion`, the camera-flow terms pass the same test on the two camera flows; with
+`cam_occlusion`, the camera-flow terms pass the same test on the two camera flows; both need
+the reverse direction, so only `pair_mode both` runs them and a training run refuses them in
+`pair_mode partner` before its initial cloud is built, `check_occlusion_mode`; with
 `full_flow_dynamic_only`, a diagnostic of ours, L_mc and L_cr only on dynamic pixels, each pixel
 weighted as in the loss over all pixels). Static pixels: the rendered dynamic-ness channel (1 for
 dynamic Gaussians) below 0.5 of the pixel's opacity; with `cam_target_static` (the paper's
@@ -141,6 +143,18 @@ class FlowPair:
     target_dynamic: Tensor | None = None
     reverse: int | None = None
     moving: tuple[Tensor, Tensor] | None = None
+
+
+def check_occlusion_mode(occlusion: bool, cam_occlusion: bool, pair_mode: str) -> None:
+    """Refuse an occlusion test the pair mode cannot run (ValueError, one line naming the switches).
+
+    Both tests compare a direction a -> b with the reverse direction b -> a, which only
+    `pair_mode both` renders; in `pair_mode partner` b is projected, never composited, so there
+    is no reverse flow and the switch would be recorded as on while doing nothing."""
+    named = [name for name, on in (("occlusion", occlusion), ("cam_occlusion", cam_occlusion)) if on]
+    if named and pair_mode != "both":
+        raise ValueError(f"--enable {','.join(named)} needs --pair_mode both (the forward-backward test compares "
+                         f"the pair's two rendered directions; --pair_mode {pair_mode} renders one view only)")
 
 
 def _static_pixels(view: ViewRender) -> Tensor:

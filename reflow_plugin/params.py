@@ -134,7 +134,8 @@ class ReFlowParams:
     pair_mode: str = param("partner", "partner (ours): each iteration renders the host's one view a and only "
                                       "deforms + projects a nearby frame b (what L_mc and camera flow of a -> b "
                                       "need); no L_cr (it needs b's render). both (the paper): both frames "
-                                      "rendered, both directions, L_cr", choices=PAIR_MODES)
+                                      "rendered, both directions, L_cr; the occlusion components need both",
+                           choices=PAIR_MODES)
     flow_blur_sigmas: list[float] = param([2.0, 4.0], "extra motion-consistency terms on images blurred with "
                                               "these Gaussian sigmas in pixels (ours, beyond the paper: a wider "
                                               "capture range for large motion); [] = the paper's loss",
@@ -241,8 +242,9 @@ class ReFlowParams:
                                                "dropped (floaters of per-frame depth errors; 0 = off)",
                                          check=_non_negative)
     canonical_max_fit_residual: float = param(0.1, "ours, monocular disparity with sparse points: when the "
-                                                   "per-frame affine fits of the disparity to the sparse points "
-                                                   "leave a median relative depth error above this, the dense "
+                                                   "per-frame fits of the disparity to the sparse points leave a "
+                                                   "median relative depth error above this on points held out by "
+                                                   "image region (canonical/check.py), the dense "
                                                    "cloud is not used (the check fails: the host's cloud + part 1 "
                                                    "seeds); 0 = no limit", check=_non_negative)
     canonical_max_depth_error: float = param(0.06, "ours, with sparse points (any provider): when the canonical "

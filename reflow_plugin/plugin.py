@@ -9,8 +9,8 @@ Components (``--disable`` / ``--enable``, the paper's ablation switches):
     separation  static/dynamic separated deformation + dynamic points seeded in the motion masks
     full_flow   full flow matching (L_mc + L_cr on the pair's rendered full flows)
     cam_flow    camera flow matching on static pixels
-    occlusion   (off by default) forward-backward occlusion masks for full flow matching
-    cam_occlusion (off by default) the same test on the pair's two camera flows
+    occlusion   (off by default) forward-backward occlusion masks for full flow matching (pair_mode both)
+    cam_occlusion (off by default) the same test on the pair's two camera flows (pair_mode both)
     ext_flow    (off by default) L1 between the rendered full flow and cached DIS optical flow: the
                 paper's "Ours (External Flow)" row is `--enable ext_flow --disable full_flow`
 
@@ -61,7 +61,7 @@ from .external import ExternalFlowCache
 from .flow import flow_features
 from .flow_matching import FlowMatching
 from .labels import aligned_depths, training_masks
-from .matching import DYNAMIC_KEY, FLOW_KEY, MatchingConfig, flow_losses
+from .matching import DYNAMIC_KEY, FLOW_KEY, MatchingConfig, check_occlusion_mode, flow_losses
 from .pairs import PairSampler
 from .params import (DYNAMIC_AABB_MARGIN, DYNAMIC_INIT_OPACITY, FLOW_MIN_ALPHA, OCCLUSION_ALPHA1, OCCLUSION_ALPHA2,
                      PHOTO_SSIM_WEIGHT, WINDOW_CULL, ReFlowParams)
@@ -134,6 +134,8 @@ class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugi
             log.warning("comp_init is enabled but %s; the host's initial cloud is used instead", reason)
 
     def initial_point_cloud(self, ctx) -> PointCloud | None:
+        # a training run only (render.py must still load a run recorded with the switch on)
+        check_occlusion_mode(self.config.occlusion, self.config.cam_occlusion, self.p.pair_mode)
         cameras = self.depth_cameras = self._corrected_disparity(ctx)
         masks, source = training_masks(cameras, self.p.label_source, self._run_dir(ctx),
                                        aligned_depths(cameras, _metric_points(ctx)), self.p.mask_offsets,

@@ -83,6 +83,8 @@ class SeparatedModeling:
             if ctx.stage == "coarse" and bool(dynamic.any()) and HIDDEN_OPACITY not in model.registered_buffers:
                 model.register_gaussian_buffer(HIDDEN_OPACITY, model._opacity.detach().clone())
                 model._opacity[dynamic] = HIDDEN_LOGIT
+                ctx.hidden = dynamic.clone()
             elif ctx.stage == "fine" and HIDDEN_OPACITY in model.registered_buffers:
                 saved = model.pop_gaussian_buffer(HIDDEN_OPACITY)
                 model._opacity[dynamic] = saved[dynamic]
+                ctx.hidden = None

@@ -69,7 +69,7 @@ def test_a_self_consistent_object_cluster_does_not_pull_the_fit(seed):
     assert per_point[0] > 0.4  # counted per point, the cluster wins: the object lands ~1.5x too far
     # counted per region, the fit is the static points' own (the object's error is the network's
     # smooth error extrapolated to a nearer depth, the same with or without the cluster)
-    assert voted[0] == pytest.approx(static_only[0], abs=0.02) and voted[0] < 0.2
+    assert voted[0] == pytest.approx(static_only[0], abs=0.015) and voted[0] < 0.2  # measured: 0.004, 0.007 apart
     assert voted[1] < 0.03
 
 
@@ -93,8 +93,12 @@ def test_the_field_is_not_bent_toward_an_outlier_cluster():
     robust = fit_field(B, residuals, 4, coverage_weights(x, y, WIDTH, HEIGHT), sigma=0.015)
     plain = fit_field(B, residuals, 4)
     centre = bilinear_weights(np.array([32.0]), np.array([60.0]), WIDTH, HEIGHT, 4)
-    assert abs(float((centre @ robust)[0])) < 0.05  # the truth is 0 everywhere
-    assert float((centre @ plain)[0]) < -0.1  # (what an unweighted least-squares field does there)
+    ys, xs = np.mgrid[0:HEIGHT:4, 0:WIDTH:4] + 2.0
+    everywhere = bilinear_weights(xs.ravel(), ys.ravel(), WIDTH, HEIGHT, 4)
+    # the truth is 0 everywhere; measured 2026-11-26: -0.0024 at the object's centre, 0.0043 at most
+    # (a field bent a tenth of the way toward the cluster, -0.017 there, fails)
+    assert abs(float((centre @ robust)[0])) < 0.008 and np.abs(everywhere @ robust).max() < 0.013
+    assert float((centre @ plain)[0]) < -0.1  # (what an unweighted least-squares field does there: -0.17)
 
 
 @pytest.mark.parametrize("source, expected", [("triangulated", 3), ("dataset", 3), ("random", 0)])

@@ -112,7 +112,11 @@ def test_inverse_depth_fit_recovers_scale_and_shift_despite_outliers():
     assert fit_disparity(-disparity[60:], depth[60:]) is None  # only a negative scale fits
 
 
-def test_frames_without_sparse_points_fall_back_to_bounds_then_neighbours(loaded, anchors):
+def _median_depth_error(scene, camera, fit: FrameFit) -> float:
+    return float(np.nanmedian(np.abs(fit.depth(camera.disparity.numpy()) / _true_depth(scene, camera) - 1)))
+
+
+def test_frames_without_sparse_points_fall_back_to_bounds_then_neighbours(loaded, anchors, monkeypatch):
     cams = loaded.train_cameras
     disparities = [c.disparity.numpy().astype(np.float64) for c in cams]
     fits = fit_frames(cams, disparities, anchors)
@@ -124,9 +128,26 @@ def test_frames_without_sparse_points_fall_back_to_bounds_then_neighbours(loaded
                                np.nan_to_num(none[0].depth(disparities[0]), nan=np.inf))
     no_bounds = fit_frames(cams, disparities, None, use_bounds=False)
     assert {f.source for f in no_bounds} == {"none"} and not any(f.usable for f in no_bounds)
-    # a frame whose fit would put its pixels behind the camera is not used as is
-    fit = FrameFit(1.0, -np.median(disparities[0]), "sparse")
-    assert np.isnan(fit.depth(disparities[0])).mean() > 0.3
+    # no bounds, and frames 1-3 see no sparse point (masked whole): they borrow the nearest sparse
+    # frame's depth range, near their own true depth (measured 2026-11-26: 5.4-8.0% median error,
+    # their own sparse fits 1.4-1.8%)
+    masks = [np.zeros((c.height, c.width), bool) for c in cams]
+    order = sorted(range(len(cams)), key=lambda k: cams[k].time)
+    for k in order[1:4]:
+        masks[k][:] = True
+    lent = fit_frames(cams, disparities, anchors, masks, use_bounds=False)
+    assert [lent[k].source for k in order[:5]] == ["sparse", "neighbour", "neighbour", "neighbour", "sparse"]
+    assert all(_median_depth_error(loaded, cams[k], lent[k]) < 0.15 for k in order[1:4])
+    # a sparse fit that would put a frame's pixels behind the camera is rejected: the bounds instead
+    import reflow_plugin.disparity as disparity_module
+
+    def behind(d, z, *args, **kwargs) -> FrameFit:  # about half the pixels at s d + o <= 0
+        return FrameFit(1.0, -float(np.median(d)), "sparse")
+
+    monkeypatch.setattr(disparity_module, "fit_disparity", behind)
+    rejected = fit_frames(cams, disparities, anchors)
+    assert {f.source for f in rejected} == {"bounds"}
+    assert all(len(f.rejected) == 1 and "behind the camera" in f.rejected[0] for f in rejected)
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks that a CPU-only machine is never asked for CUDA")
@@ -299,11 +320,15 @@ def test_the_disparity_correction_brings_the_aligned_depth_nearer_the_truth(tmp_
         return float(np.median([np.nanmedian(np.abs(d / _true_depth(scene, c) - 1)) for c, d in zip(cameras, depths)]))
 
     plugin = ReFlowPlugin()
+    original = [c.disparity.clone() for c in scene.train_cameras]
     corrected = plugin._corrected_disparity(ctx)
     info = plugin.info["disparity_field"]
-    assert info["corrected"] > 0 and info["residual_corrected"] < info["residual"]
+    # judged against the true depth, which no step saw (the in-sample residual at the sparse points
+    # falls whatever the field does: it was fitted to them)
+    assert info["corrected"] > 0 and len(info["held_out"]) == info["corrected"]
     assert error(corrected) < 0.8 * error(scene.train_cameras)
-    assert all(c.disparity is not d.disparity for c, d in zip(scene.train_cameras, corrected)
-               if c is not d)  # corrected copies; the dataset's cameras keep their disparity
+    changed = [not torch.equal(c.disparity, d.disparity) for c, d in zip(scene.train_cameras, corrected)]
+    assert sum(changed) == info["corrected"]  # the corrected frames carry the correction ...
+    assert all(torch.equal(c.disparity, o) for c, o in zip(scene.train_cameras, original))  # ... on copies
     off = ReFlowPlugin({"ReFlowParams": replace(plugin.p, disparity_field=0)})
     assert all(a is b for a, b in zip(off._corrected_disparity(ctx), scene.train_cameras))

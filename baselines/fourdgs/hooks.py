@@ -79,6 +79,9 @@ class TrainContext:
         densify_record: what densification did this iteration (or None).
         background: [3] background colour. state: free-form per-run storage for plugins, keyed by
             plugin name (e.g. ctx.state["reflow"]).
+        hidden: [N] bool, the Gaussians a plugin hides on purpose in this stage (ReFlow's coarse
+            stage hides the dynamic ones), or None; the stall guard does not wait for a render of a
+            model whose every Gaussian is hidden.
     """
 
     args: TrainArgs
@@ -102,6 +105,7 @@ class TrainContext:
     densify_record: Any = None
     background: Tensor | None = None
     state: dict[str, Any] = field(default_factory=dict)
+    hidden: Tensor | None = None
 
 
 class HookRunner:

@@ -11,10 +11,23 @@ guard raises `TrainingStalled` (a ValueError: train.py prints one `error:` line 
 - no Gaussian contributed to any pixel (alpha >= 1/255) of any rendered training view for
   `iterations` consecutive steps, at any point of the run (a healthy run always renders
   something; pruning everything, or an initial cloud outside the views, renders nothing), or
-- over the first `iterations` steps the loss is flat: within `tolerance` (1e-4) over the whole
-  window, or between the first and the last time each batch of views was drawn (every batch
-  drawn twice or more; only this first window, where a healthy loss falls by orders of magnitude
-  more than 1e-4 within a few dozen steps).
+- the loss is flat early in the run: within `tolerance` (1e-4) over the first `iterations`
+  steps, or, for every batch of views first drawn in those steps and drawn again later, between
+  its first and its latest loss. The window stays open past `iterations` until REPEATS such
+  batches were drawn again (or all of them, with fewer batches; at most WAIT x `iterations`
+  steps or two passes over the training views, whichever is longer), so the test works for any
+  number of views: with 250 views at batch size 1 no batch repeats within 200 steps (each pass
+  draws every view once), the first repeats come from step 251 on and a frozen run stops at
+  step 260; with 1000 views at step 1048 (seeded sampler). A healthy loss falls by orders of
+  magnitude more than 1e-4 between a view's first draw and its next; a run whose renders never
+  change gives every view the same loss again.
+
+A loss of exactly 0 is left out of the flat-loss test (the step had nothing to fit: every pixel
+weighted out, as ReFlow's coarse stage does where motion masks cover the whole frame); the
+visibility test still counts the step. Steps in which every Gaussian is hidden on purpose
+(ctx.hidden: ReFlow's coarse stage hides the dynamic Gaussians, all of them when every Gaussian
+is labelled dynamic) are not counted at all: an empty render or a flat loss there says nothing
+about the cloud, and the run recovers when the stage that shows them starts.
 
 Neither fired on a healthy run (the synthetic suite in both priors modes, the static scene). The
 message gives what the cloud looks like from the cameras (how many views see a Gaussian centre,
@@ -29,6 +42,8 @@ import torch
 from baselines.data.cloud_check import check_cloud_against_cameras
 
 ALPHA_VISIBLE = 1.0 / 255.0
+REPEATS = 8  # batches drawn again that the flat-loss test waits for
+WAIT = 5  # ... for at most this many times the guard's window
 
 
 class TrainingStalled(ValueError):
@@ -41,10 +56,14 @@ class StallGuard:
     def __init__(self, iterations: int, tolerance: float = 1e-4) -> None:
         self.iterations = int(iterations)
         self.tolerance = float(tolerance)
-        self.seen = 0
+        self.seen = 0  # steps counted (those with some Gaussian shown)
         self.invisible_since: int | None = None  # step count at which the current empty stretch began
-        self.losses: list[float] = []
-        self.by_batch: dict[tuple[int, ...], list[float]] = {}
+        self.losses: list[float] = []  # of the first `iterations` counted steps
+        self.first: dict[tuple[int, ...], float] = {}  # batch -> its loss when first drawn (first window)
+        self.again: dict[tuple[int, ...], float] = {}  # batch of `first` -> its latest loss since
+        self.decided = False  # the flat-loss test has run
+        self.zero_losses = 0  # steps whose loss was exactly 0 (not in the flat-loss test)
+        self.tested = 0  # steps in the flat-loss test
 
     @property
     def armed(self) -> bool:
@@ -52,7 +71,7 @@ class StallGuard:
 
     def observe(self, ctx) -> None:
         """Record one finished step (ctx.views rendered, ctx.loss computed); raise when stalled."""
-        if not self.armed:
+        if not self.armed or _all_hidden(ctx):
             return
         self.seen += 1
         alpha = torch.stack([view.alpha.detach().max() for view in ctx.views]).max()
@@ -62,22 +81,42 @@ class StallGuard:
             self.invisible_since = self.seen
         if self.invisible_since is not None and self.seen - self.invisible_since + 1 >= self.iterations:
             self._nothing_visible(ctx)
-        if self.seen <= self.iterations:
-            loss = float(ctx.metrics["loss"]) if "loss" in ctx.metrics else float(ctx.loss.detach())
+        if self.decided:
+            return
+        loss = float(ctx.metrics["loss"]) if "loss" in ctx.metrics else float(ctx.loss.detach())
+        if loss == 0.0:  # every pixel weighted out (a plugin's coarse stage on masks covering the frame)
+            self.zero_losses += 1
+            return
+        self.tested += 1
+        key = tuple(sorted(c.uid for c in ctx.batch))
+        if self.tested <= self.iterations:
             self.losses.append(loss)
-            self.by_batch.setdefault(tuple(sorted(c.uid for c in ctx.batch)), []).append(loss)
-            if self.seen == self.iterations and self._flat():
+        if key in self.first:
+            self.again[key] = loss
+        elif self.tested <= self.iterations:
+            self.first[key] = loss
+        enough = len(self.again) >= min(REPEATS, len(self.first))
+        if self.tested >= self.iterations and (enough or self.tested >= self._deadline(ctx)):
+            self.decided = True
+            if self._flat():
                 raise TrainingStalled(
                     f"training cannot learn: the loss stayed flat to {self.tolerance:g} over the first "
-                    f"{self.iterations} iterations ({min(self.losses):.6g} to {max(self.losses):.6g}); the "
-                    f"Gaussians do not change the renders ({describe_cloud(ctx)}). Likely an initial cloud "
-                    f"outside the views or at the wrong scale")
+                    f"{self.tested} iterations ({min(self.losses):.6g} to {max(self.losses):.6g} over the first "
+                    f"{len(self.losses)}; {len(self.again)} batches of views drawn again gave their first loss "
+                    f"again); the Gaussians do not change the renders ({describe_cloud(ctx)}). Likely an "
+                    f"initial cloud outside the views or at the wrong scale")
+
+    def _deadline(self, ctx) -> int:
+        """Steps the flat-loss test waits at most for batches drawn again: WAIT x the window, and
+        at least two passes over the training views (each view drawn once per pass)."""
+        views = len(getattr(ctx, "train_cameras", None) or ())
+        return max(WAIT * self.iterations, 2 * -(-views // max(len(ctx.batch), 1)))
 
     def _flat(self) -> bool:
         if max(self.losses) - min(self.losses) <= self.tolerance:
             return True
-        repeated = [v for v in self.by_batch.values() if len(v) >= 2]
-        return bool(repeated) and all(abs(v[-1] - v[0]) <= self.tolerance for v in repeated)
+        return bool(self.again) and all(abs(loss - self.first[key]) <= self.tolerance
+                                        for key, loss in self.again.items())
 
     def _nothing_visible(self, ctx) -> None:
         where = (f"over the first {self.iterations} iterations; the initial cloud lies outside the views"
@@ -87,6 +126,15 @@ class StallGuard:
         raise TrainingStalled(
             f"training cannot learn: no Gaussian was visible in any rendered training view {where} "
             f"({describe_cloud(ctx)}). Check the initial point cloud's source and scale against the cameras")
+
+
+def _all_hidden(ctx) -> bool:
+    """Whether a plugin hides every Gaussian of the model on purpose this step (ctx.hidden)."""
+    hidden = getattr(ctx, "hidden", None)
+    model = getattr(ctx, "model", None)
+    if hidden is None or model is None:
+        return False
+    return hidden.numel() > 0 and hidden.numel() == model.get_xyz.shape[0] and bool(hidden.all())
 
 
 def describe_cloud(ctx) -> str:

@@ -14,18 +14,33 @@ inverse-depth maps themselves:
 2. Refinement (Adam, cosine rate, cameras fixed). u_n = exp(a_n) (s_n d_n + o_n) + b_n m_n with
    (a_n, b_n) starting at 0 and m_n the frame's median initial inverse depth, minimising
 
-       L = mean_k rho(u_n(d_k) z_k - 1)                       anchors: sparse point k at depth z_k
+       L = sum_k v_k rho(u_n(d_k) z_k - 1) / sum_k v_k        anchors: sparse point k at depth z_k, vote v_k
          + lambda mean_(i,j),p rho(u_j(q) Z_ij(p) - 1)        views: pixel p of frame i, placed at
                                                              1 / u_i(p), seen by camera j at pixel
                                                              q with depth Z_ij(p)
 
    rho(r) = delta^2 log(1 + (r / delta)^2) (Cauchy, delta = 0.05: occlusions and the monocular
    error's edges are outliers), pairs (i, j) at most `window` frames apart in time, both ways.
-   Both residuals are relative depth errors normalised by a FIXED depth (the sparse point's,
-   and for the view term the other frame's prediction, which scales with it): multiplying every
-   u by c costs (c - 1) on every anchor, so the trivial solution (all depths shrinking toward the
-   cameras, every point merging) is not a minimum; without anchors (bounds/neighbour fits only)
-   the view term alone fixes the scale through the camera baselines.
+   The anchor term counts each sparse point with its vote (reflow_plugin.disparity.coverage_weights:
+   one vote per image region of its frame, as in the per-frame fits): a cluster of points on one
+   textured patch must not outweigh the rest of the frame here either.
+
+   Scale. The anchor residuals are relative to a FIXED depth (the sparse point's): multiplying
+   every u by c costs (c - 1) on every anchor, so with sparse points the trivial solution (all
+   depths shrinking toward the cameras) is not a minimum. The view term alone does NOT fix the
+   scale: it is relative to the other frame's prediction, which scales with it; on a plane a
+   common scale leaves it exactly unchanged, and a cloud pushed out of the views empties its
+   weighted mean (loss 0). Measured (2026-11-26), three cameras on a plane, no sparse points:
+   started 2x too near, the depth stayed at 0.49 of the truth (view residual 1e-7); started right
+   on average (+-5% per frame), 50 steps drifted it to 0.981-0.983; the real-priors scenes with
+   the bounds alone drifted to 0.89-0.94 of the true depth. So without anchors (bounds /
+   neighbour fits only) a gauge term holds the common scale where the initial fits put it (the
+   same cases: 0.9999-1.0015, and 1.015-1.040 on the scenes):
+
+       + SCALE_WEIGHT (mean_n log(exp(a_n) + b_n))^2
+
+   (exp(a_n) + b_n: the refined over the initial median inverse depth of frame n); the frames'
+   scales relative to each other stay free for the view term. The report names the anchor.
 
 Degenerate cases: a frame whose refined map puts more than MAX_BEHIND of its pixels behind the
 camera keeps its initial fit (reported); pixels with u <= 0 or beyond `max_depth` (the bounds' far
@@ -34,6 +49,7 @@ initial fits are returned as they are.
 """
 from __future__ import annotations
 
+import logging
 import math
 import sys
 import time
@@ -49,7 +65,10 @@ from .alignment import FrameState
 from .geometry import rays as grid_rays
 from .providers import PointmapProvider
 
+log = logging.getLogger(__name__)
+
 DELTA = 0.05
+SCALE_WEIGHT = 1.0  # gauge term without sparse points (module docstring)
 VIEW_WEIGHT = 1.0
 MAX_PIXELS = 256  # source pixels per frame in the view term (seeded subsample)
 FAR_FACTOR = 10.0  # max depth without bounds: this x the frame's median depth
@@ -67,6 +86,13 @@ def _max_depth(provider: PointmapProvider, n: int, fit: FrameFit, d: np.ndarray)
     return FAR_FACTOR * float(np.nanmedian(z)) if np.isfinite(z).any() else math.inf
 
 
+def _votes(pairs: tuple | None, count: int) -> np.ndarray:
+    """[count] votes of one frame's anchor pairs: the third entry when given, else one each."""
+    if pairs is not None and len(pairs) > 2:
+        return np.asarray(pairs[2], np.float64).reshape(-1)
+    return np.ones(count)
+
+
 def _pairs(frames: Sequence[int], window: int) -> list[tuple[int, int]]:
     """Directed pairs (i, j) at most `window` positions apart in `frames` (time order)."""
     return [(frames[a], frames[b]) for a in range(len(frames)) for b in range(len(frames))
@@ -74,13 +100,14 @@ def _pairs(frames: Sequence[int], window: int) -> list[tuple[int, int]]:
 
 
 def align_inverse(provider: PointmapProvider, frames: Sequence[int], weights: Mapping[int, np.ndarray],
-                  fits: Mapping[int, FrameFit], anchors: Mapping[int, tuple[np.ndarray, np.ndarray]],
+                  fits: Mapping[int, FrameFit], anchors: Mapping[int, tuple[np.ndarray, ...]],
                   window: int = 4, iterations: int = 50, lr: float = 0.02, progress: bool = False,
                   device: torch.device | str = "cpu", seed: int = 0) -> tuple[dict[int, FrameState], dict]:
     """Per-frame inverse-depth maps of `frames` (camera indices sorted by time).
 
     weights: per frame [h, w] on the provider's grid (0 on dynamic pixels); fits: the initial
-    FrameFit of every frame (usable); anchors: per frame (d [K], z [K]) sparse pairs (may be empty).
+    FrameFit of every frame (usable); anchors: per frame (d [K], z [K]) or (d [K], z [K], votes [K])
+    sparse pairs (may be empty; without votes each pair counts once).
     Returns ({frame: FrameState(inverse=True)}, report with residuals, sources and seconds).
     """
     start = time.perf_counter()
@@ -109,7 +136,12 @@ def align_inverse(provider: PointmapProvider, frames: Sequence[int], weights: Ma
     fa = np.concatenate([np.full(len(anchors.get(n, ([], []))[0]), index[n]) for n in frames] + [np.zeros(0)])
     da = np.concatenate([np.asarray(anchors.get(n, ([], []))[0], np.float64) for n in frames] + [np.zeros(0)])
     za = np.concatenate([np.asarray(anchors.get(n, ([], []))[1], np.float64) for n in frames] + [np.zeros(0)])
-    fa, da, za = T(fa, torch.long), T(da), T(za)
+    va = np.concatenate([_votes(anchors.get(n), len(anchors.get(n, ([], []))[0])) for n in frames] + [np.zeros(0)])
+    fa, da, za, va = T(fa, torch.long), T(da), T(za), T(va)
+    scale_anchor = "sparse points" if len(fa) else "initial fits' common scale (no sparse point)"
+    if not len(fa):
+        log.info("inverse-depth refinement: no sparse point; the common scale is held at the initial fits' "
+                 "(the views alone cannot fix it)")
     # view term: seeded subsample of each frame's valid static pixels
     rng = np.random.default_rng(seed)
     picks = []
@@ -165,7 +197,10 @@ def align_inverse(provider: PointmapProvider, frames: Sequence[int], weights: Ma
         r_anchor, r_view, weight = residuals()
         total = r_anchor.new_zeros(())
         if len(r_anchor):
-            total = total + _rho(r_anchor).mean()
+            total = total + (va * _rho(r_anchor)).sum() / va.sum().clamp_min(1e-12)
+        else:  # gauge: the frames' mean log scale stays at the initial fits'
+            ratio = (torch.exp(a) + b).clamp_min(1e-6)
+            total = total + SCALE_WEIGHT * torch.log(ratio).mean() ** 2
         if weight.sum() > 0:
             total = total + VIEW_WEIGHT * (weight * _rho(r_view)).sum() / weight.sum()
         return total
@@ -203,7 +238,7 @@ def align_inverse(provider: PointmapProvider, frames: Sequence[int], weights: Ma
         states[n] = FrameState(refined.scale, refined.shift, provider.viewmats[n], fits[n].source != "none",
                                inverse=True, max_depth=max_depth[k])
     report = {"mode": "inverse depth (anchored)", "frames": len(frames), "edges": len(pairs),
-              "anchors": int(len(fa)), "iterations": iterations,
+              "anchors": int(len(fa)), "scale_anchor": scale_anchor, "iterations": iterations,
               "residual_init": before, "residual": after, "kept_initial_fit": kept,
               "seconds": time.perf_counter() - start}
     return states, report

@@ -4,7 +4,8 @@ Alignment, by provider:
 - depth provider (monocular disparity), cameras fixed, with metric evidence (`anchors`: the
   host's sparse points, and/or the dataset's near/far bounds): scale comes first. Each frame's
   affine map in inverse depth is fitted to that evidence (reflow_plugin.disparity), then refined
-  jointly (inverse.py). `refine=False` stops after the per-frame fits.
+  jointly (inverse.py; each sparse point with its region vote, as in the fits). `refine=False`
+  stops after the per-frame fits.
 - otherwise (flow provider, free poses, no evidence): the DUSt3R-style coarse-to-fine alignment
   (coarse_to_fine.py, alignment.py).
 `align=False` is the paper's "w/o align": raw per-frame pointmaps with the dataset's cameras.
@@ -29,7 +30,7 @@ from plyfile import PlyData, PlyElement
 from baselines.data import Camera, PointCloud
 from baselines.fourdgs.checkpoint import atomic_write_ply
 
-from ..disparity import fit_frames, sparse_pairs, summary
+from ..disparity import fit_frames, sparse_votes, summary
 from . import cache
 from .coarse_to_fine import align_sequence, unaligned
 from .inverse import align_inverse
@@ -160,7 +161,7 @@ def _align_inverse(provider: DepthProvider, cameras: Sequence[Camera], frames: l
                     "using the pairwise alignment instead", sum(not f.usable for f in fits))
         return None
     points = np.zeros((0, 3)) if anchors is None else anchors
-    pairs = {n: sparse_pairs(cameras[n], inverse[n], points, None if masks is None else masks[n]) for n in frames}
+    pairs = {n: sparse_votes(cameras[n], inverse[n], points, None if masks is None else masks[n]) for n in frames}
     fit_report = dict(summary(fits), frames={cameras[n].image_name: fits[n].as_dict() for n in frames})
     # On the CPU whatever the training device: a few thousand residuals per step, so on a GPU the
     # 50 steps are bound by kernel launches (embedded scene: 7.0 s on an H200 vs 2.0 s on one CPU thread)
