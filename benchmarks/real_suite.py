@@ -58,7 +58,7 @@ METHODS = {
     "reflow_masks8": ["--plugin", "reflow", "--mask_offsets", "-4", "-3", "-2", "-1", "1", "2", "3", "4"],
     "reflow_masks4": ["--plugin", "reflow", "--mask_offsets", "-2", "-1", "1", "2"],
     # the estimated masks' second, slow-motion pairing (frames 4-8 apart, gated by the first), explicitly
-    # (the default since stop 34), and without it (the near pairs alone, the default before)
+    # (the default since commit 877daeb, 2026-11-26), and without it (the near pairs alone, the default before)
     "reflow_slow_masks": ["--plugin", "reflow", "--mask_slow_offsets", "-8", "-6", "-4", "4", "6", "8"],
     "reflow_near_masks": ["--plugin", "reflow", "--mask_slow_offsets", "0"],
     # keyframe seeds on depth edges kept at the depth the disparity gives them (before --seed_edge_ratio 1.1)

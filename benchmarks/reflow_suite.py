@@ -60,10 +60,10 @@ METHODS = {
     "reflow_promote": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow", "--promote_residual", "3"],
     "reflow_masks8": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow",
                       "--mask_offsets", "-4", "-3", "-2", "-1", "1", "2", "3", "4"],
-    # the estimated masks' slow-motion pairing, explicitly (the default since stop 34: earlier tables' command)
+    # the estimated masks' slow-motion pairing, explicitly (the default since commit 877daeb: earlier tables' command)
     "reflow_slow_masks": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow",
                           "--mask_slow_offsets", "-8", "-6", "-4", "4", "6", "8"],
-    # ... and without it (the near pairs alone, the default before stop 34)
+    # ... and without it (the near pairs alone, the default before commit 877daeb)
     "reflow_near_masks": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow",
                           "--mask_slow_offsets", "0"],
     # labels that change during the fine stage: residual votes every 100 iterations (estimated masks only)
