@@ -267,6 +267,9 @@ def help_request(kind: str, target: str, arguments: list[str]) -> tuple[str, str
     return kind, target, tuple(argv)
 
 
+_HELP_CACHE: dict[tuple[str, str, tuple[str, ...]], dict] = {}  # (kind, target, argv) -> --help result
+
+
 def command_problems(commands: list[list[str]], root: Path) -> list[str]:
     """One line per README command whose --help fails or that types a flag its --help lacks."""
     checks = []  # (command, request, flags to find in that request's help)
@@ -279,8 +282,10 @@ def command_problems(commands: list[list[str]], root: Path) -> list[str]:
         checks.append((tokens, help_request(kind, target, own), typed_flags(own)))
         if passed_on:  # `ablate ... -- TRAIN_FLAGS`: the rest goes to train.py, with ReFlow's flags
             checks.append((tokens, help_request("script", "train.py", ["--plugin", "reflow"]), typed_flags(passed_on)))
-    requests = sorted({request for _, request, _ in checks}, key=repr)
-    texts = dict(zip(requests, help_texts([(k, t, list(a)) for k, t, a in requests], root)))
+    missing = sorted({request for _, request, _ in checks} - set(_HELP_CACHE), key=repr)
+    if missing:  # one interpreter for every --help not asked before in this test run
+        _HELP_CACHE.update(zip(missing, help_texts([(k, t, list(a)) for k, t, a in missing], root)))
+    texts = _HELP_CACHE
     problems = []
     for tokens, request, flags in checks:
         result = texts[request]
