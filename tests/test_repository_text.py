@@ -282,18 +282,17 @@ def command_problems(commands: list[list[str]], root: Path) -> list[str]:
         checks.append((tokens, help_request(kind, target, own), typed_flags(own)))
         if passed_on:  # `ablate ... -- TRAIN_FLAGS`: the rest goes to train.py, with ReFlow's flags
             checks.append((tokens, help_request("script", "train.py", ["--plugin", "reflow"]), typed_flags(passed_on)))
-    missing = sorted({request for _, request, _ in checks} - set(_HELP_CACHE), key=repr)
-    if missing:  # one interpreter for every --help not asked before in this test run
-        _HELP_CACHE.update(zip(missing, help_texts([(k, t, list(a)) for k, t, a in missing], root)))
-    texts = _HELP_CACHE
+    new = sorted({request for _, request, _ in checks} - set(_HELP_CACHE), key=repr)
+    if new:  # one interpreter for every --help not asked before in this test run
+        _HELP_CACHE.update(zip(new, help_texts([(k, t, list(a)) for k, t, a in new], root)))
     problems = []
     for tokens, request, flags in checks:
-        result = texts[request]
+        result = _HELP_CACHE[request]
         command = " ".join(tokens)
         if result["code"] != 0:
             problems.append(f"{command}: --help exits {result['code']}: {result['output'][-300:]}")
-        elif missing := unlisted_flags(flags, result["output"]):
-            problems.append(f"{command}: {request[1]} has no {', '.join(missing)}")
+        elif unknown := unlisted_flags(flags, result["output"]):
+            problems.append(f"{command}: {request[1]} has no {', '.join(unknown)}")
     return problems
 
 
