@@ -2,7 +2,7 @@
 
     pytest -q tests/test_repository_text.py
 
-Three checks over what a clean clone holds:
+Four checks over what a clean clone holds:
 
 - every tracked text file (``git ls-files``; binaries skipped) is free of development-diary
   wording: a result is dated (2026-11-26) or tied to a commit, never to the working stop, session
@@ -11,6 +11,7 @@ Three checks over what a clean clone holds:
 - README.md and docs/*.md: every relative link and image exists (an anchor into a markdown page
   names one of its headings), and every repository path they name (``docs/...``,
   ``baselines/...``, ``reflow_plugin/...``, any tracked top-level folder) exists;
+- docs/ARCHITECTURE.md's module map: a module named in a package's section exists in that package;
 - every ``python ...`` line in the README's code blocks names a script or module whose
   ``--help`` works, and each flag it types is one that ``--help`` lists (one subprocess runs
   every ``--help``, so torch is imported once).
@@ -148,6 +149,25 @@ def named_paths(text: str, folders: set[str]) -> list[str]:
 def missing_paths(text: str, root: Path, folders: set[str]) -> list[str]:
     """The repository paths named in `text` that do not exist under `root`."""
     return sorted({path for path in named_paths(text, folders) if not (root / path).exists()})
+
+
+def module_map_gaps(text: str, files: set[str]) -> list[str]:
+    """Module files named in the sections of a module map that are headed by a package
+    (``## `baselines/render`: ...``) that no file of that package's top folder is: such a
+    section names its modules relative to the package (`kernel.py`, `fourdgs/interrupt.py`) or
+    by their repository path."""
+    gaps, top = [], None
+    for line in text.splitlines():
+        heading = re.match(r"^## `([\w/]+)`", line)
+        if heading or line.startswith("## "):
+            top = heading.group(1).split("/")[0] if heading else None
+            continue
+        if top is None:
+            continue
+        for name in re.findall(r"`([\w/]+\.(?:py|cpp))`", line):
+            if name not in files and not any(path.startswith(top + "/") and path.endswith("/" + name) for path in files):
+                gaps.append(f"{name} (section of {top}/)")
+    return gaps
 
 
 def _top_level_folders(files: list[Path], root: Path) -> set[str]:
@@ -316,6 +336,12 @@ def test_links_and_named_paths_of_readme_and_docs_exist():
     assert not problems, "dead links or paths:\n" + "\n".join(problems)
 
 
+def test_module_map_names_modules_that_exist():
+    files = {path.relative_to(ROOT).as_posix() for path in tracked_text_files(ROOT)}
+    gaps = module_map_gaps((ROOT / "docs" / "ARCHITECTURE.md").read_text(encoding="utf-8"), files)
+    assert not gaps, "docs/ARCHITECTURE.md names modules that do not exist:\n" + "\n".join(gaps)
+
+
 def test_readme_python_commands_parse():
     commands = python_commands((ROOT / "README.md").read_text(encoding="utf-8"))
     assert len(commands) >= 10, commands  # the README's commands are found at all
@@ -359,6 +385,13 @@ def test_dead_links_and_paths_are_found(tmp_path):
         "docs/missing.png (no such file)"]
     assert missing_paths(text, tmp_path, {"baselines", "docs"}) == [
         "baselines/gone.py", "baselines/other.py", "docs/B.md", "docs/C.md", "docs/D.md", "docs/missing.png"]
+
+
+def test_module_map_gaps_are_found():
+    files = {"baselines/render/kernel.py", "baselines/fourdgs/interrupt.py", "reflow_plugin/flow.py"}
+    text = ("# Map\n\n## `baselines/render`: raster\n`kernel.py`, `gone.py`, `fourdgs/interrupt.py`, `reflow_plugin/flow.py`\n"
+            "## Shared conventions\n`anything.py`\n## `reflow_plugin`: ReFlow\n`flow.py` and `plugin.py`\n")
+    assert module_map_gaps(text, files) == ["gone.py (section of baselines/)", "plugin.py (section of reflow_plugin/)"]
 
 
 def test_readme_commands_are_extracted():
