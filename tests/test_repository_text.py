@@ -10,7 +10,8 @@ Four checks over what a clean clone holds:
   own examples in two pieces so that it passes its own check);
 - README.md and docs/*.md: every relative link and image exists (an anchor into a markdown page
   names one of its headings), and every repository path they name (``docs/...``,
-  ``baselines/...``, ``reflow_plugin/...``, any tracked top-level folder) exists;
+  ``baselines/...``, ``reflow_plugin/...``, any tracked top-level folder) exists (a removed
+  module is named with its commit, ``e676122:reflow_plugin/promotion.py``, and not checked);
 - docs/ARCHITECTURE.md's module map: a module named in a package's section exists in that package;
 - every ``python ...`` line in the README's code blocks names a script or module whose
   ``--help`` works, and each flag it types is one that ``--help`` lists (one subprocess runs
@@ -133,11 +134,13 @@ def _expand_braces(path: str) -> list[str]:
 
 
 def named_paths(text: str, folders: set[str]) -> list[str]:
-    """Repository paths named in `text`: tokens that start with a tracked top-level folder."""
+    """Repository paths named in `text`: tokens that start with a tracked top-level folder. A path
+    written as git's `COMMIT:path` names a file of that commit (the record of a removed module)
+    and is not one of them."""
     if not folders:
         return []
     alternatives = "|".join(sorted(re.escape(folder) for folder in folders))
-    pattern = re.compile(rf"(?<![\w/.~-])((?:{alternatives})/[\w./{{}},*-]*)")
+    pattern = re.compile(rf"(?<![\w/.~:-])((?:{alternatives})/[\w./{{}},*-]*)")
     paths = []
     for token in pattern.findall(text):
         for path in _expand_braces(token.rstrip(".,:;")):
@@ -379,7 +382,8 @@ def test_dead_links_and_paths_are_found(tmp_path):
     text = ("[ok](docs/A.md) [anchor](docs/A.md#some-section-x) ![img](docs/missing.png)\n"
             "[gone](docs/B.md) [bad anchor](docs/A.md#nowhere) [web](https://example.org/x)\n"
             "```\n[in code](docs/C.md)\n```\n"
-            "see `baselines/real.py`, `baselines/gone.py` and docs/D.md, `baselines/{real,other}.py`\n")
+            "see `baselines/real.py`, `baselines/gone.py` and docs/D.md, `baselines/{real,other}.py`,\n"
+            "`877daeb:baselines/removed.py` (a file of that commit)\n")
     assert sorted(dead_links(page, text)) == [
         "docs/A.md#nowhere (no heading with that anchor)", "docs/B.md (no such file)",
         "docs/missing.png (no such file)"]
