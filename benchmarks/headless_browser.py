@@ -4,7 +4,7 @@
         png = browser.screenshot()                                 # PNG bytes
         picture = browser.wait_for_picture(is_ready, timeout=60)   # [H, W, 3] uint8 RGB
 
-Used by the viewer's browser test, `benchmarks/viewer.py` and the README's screenshot, with
+Used by the viewer's browser test, `benchmarks/viewer.py` and the screenshots in docs/VIEWER.md, with
 `ViewerProcess` (view.py in a subprocess, its output read line by line). Only the
 standard library and `websockets` (a requirement of viser) are needed; no browser download.
 Chromium runs with a fresh profile and without any background network traffic or GPU:

@@ -43,7 +43,7 @@ class Capture:
     repo: str                      # GitHub owner/name
     commit: str                    # 40-hex commit the data is read from
     folder: str                    # folder inside the repository
-    what: str                      # one line for the README table
+    what: str                      # one line for the table in docs/REAL_CAPTURES.md
     resolution: int = 1            # train.py -r (downscale factor of the stored images)
     keep: tuple[str, ...] = ()     # nvidia: entries of `folder` copied into the dataset
     prepare_flags: tuple[str, ...] = ()  # clip: options of `python -m baselines.prepare`

@@ -6,7 +6,7 @@ A monocular network's disparity is inverse depth up to a per-frame affine map AN
 low-frequency error (a ramp over the floor, a wall a few percent too near); the affine fit of
 reflow_plugin.disparity removes the first and leaves the second, which places the static cloud a
 few percent off and, worse, makes the estimated motion masks' re-projection test see motion
-everywhere the error changes between frames (README, "What the monocular depth's errors cost":
+everywhere the error changes between frames (docs/REAL_PRIORS.md, "What the monocular depth's errors cost":
 on the real-priors truck the 5% error alone takes the masks' IoU from 0.85 to 0.23). Model:
 
     1 / z(p) = (s d(p) + o) exp(g(p))

@@ -28,7 +28,7 @@ every keyframe's copy of the object) and, `anchored`, by D(x, tau) - D(x, 0): it
 where it was seeded at its own time, whatever the field learns. Without the anchor the field's
 value at tau = 0 is free, and a loss that asks for motion at tau != 0 (flow matching) drags the
 seeds away from their keyframe through the shared plane cells (measured: training-view
-PSNR-dynamic 32.8 -> 19 dB in 300 flow-only steps; README, "What the flow loss needs").
+PSNR-dynamic 32.8 -> 19 dB in 300 flow-only steps; docs/REFLOW.md, "The failure ReFlow must fix").
 
 `zero_init` zeroes the last layer of every delta head (deltas start at exactly 0, so dynamic
 Gaussians start where the canonical space put them, at every time); 4DGS's Xavier draws happen

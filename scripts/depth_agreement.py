@@ -11,8 +11,7 @@ up to 16 views), the ratio of the cloud's depth in that
 cell (nearest point, and median over the cell's points) to the sparse point's depth. Prints the
 medians of the ratio and of |ratio - 1| (the relative depth error of the cloud where the sparse
 points can judge it). Measured: 3.1-4.6% on the simulator's real-priors scenes, 7.8% on DAVIS
-lady-running (flow provider), 14.0% on NVIDIA Balloon1's monocular disparity (README "Real
-captures").
+lady-running (flow provider), 14.0% on NVIDIA Balloon1's monocular disparity (docs/REAL_CAPTURES.md).
 """
 from __future__ import annotations
 

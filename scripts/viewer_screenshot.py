@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""A screenshot of the web viewer in headless Chromium (the README's pictures).
+"""A screenshot of the web viewer in headless Chromium (the pictures of docs/VIEWER.md).
 
     python scripts/viewer_screenshot.py -m output/skating_reflow -o docs/images/viewer_reflow.png \\
         [-m RUN_B] [--mode "full flow"] [--time 0.5] [--size 1280x800] [--max_res 512] [--no_frustums]

@@ -267,7 +267,7 @@ def test_concurrent_builds_leave_one_valid_library(fresh_kernel_state, monkeypat
 
 
 def test_cached_library_is_loaded_without_rebuilding(compiled, fresh_kernel_state, monkeypatch):
-    # `compiled` is the library this session built or found; copy it into the empty cache.
+    # `compiled` is the library the test session built or found; copy it into the empty cache.
     target = kernel.library_path(kernel.find_compiler())
     target.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(compiled, target)

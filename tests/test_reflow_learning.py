@@ -3,7 +3,7 @@
 A textured carpet of Gaussians faces a fixed camera; frame b shows it shifted by a known number
 of pixels. Only L_mc (the warp of I_b by the rendered full flow against I_a) is minimised, so any
 recovered motion comes from flow matching. These are small versions of what the embedded scene
-measures (README, "What the flow loss needs").
+measures (docs/REFLOW.md, "The failure ReFlow must fix").
 """
 from __future__ import annotations
 

@@ -13,7 +13,7 @@ opacity reset and ``capture()`` order are 4DGS's. Additions for plugins:
 - ``set_time_span((lo, hi), mode)``: what ``deform`` does at times outside [lo, hi] (the trainer
   sets the training views' span and ``--time_outside``): "extrapolate" (4DGS), "hold" (clamp the
   time) or "linear" (hold, with centres moved on at their velocity at the span's edge). Outside
-  the span the field was never fitted; README, "Times outside the training span".
+  the span the field was never fitted; docs/TRAINING.md, "Times outside the training span".
 
 Device: everything follows the point cloud given to ``create_from_pcd`` (or the restored
 tensors); nothing is hard-coded.

@@ -42,7 +42,7 @@ fitted to the same points, so it is a lower bound of the cloud's error (the fit'
 residual above is the out-of-sample measure of the same prior). Measured: 0.8% on NVIDIA
 Balloon1 through prepare and 3.1-4.6% on the real-priors scenes (comp_init helps on all of them), 7.8% on DAVIS
 lady-running (flow provider) and 14% on Balloon1's monocular disparity (comp_init cost the
-background on both: README "Real captures").
+background on both: docs/REAL_CAPTURES.md).
 
 Views are evenly subsampled (MAX_VIEWS) and clouds randomly (MAX_POINTS, seeded): a check costs
 well under a second.
