@@ -45,6 +45,9 @@ SCENES = ("balloon", "playground", "skating", "truck", "umbrella")
 METHODS = {
     "baseline": ["--configs", "arguments/synthetic/default.py"],
     "reflow": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow"],
+    # the deformation MLP in float32 (4DGS's arithmetic) where `auto` picks bfloat16 (CPUs with it natively)
+    "baseline_fp32": ["--configs", "arguments/synthetic/default.py", "--mlp_precision", "float32"],
+    "reflow_fp32": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow", "--mlp_precision", "float32"],
     # part 1 alone: the host's triangulated cloud plus keyframe seeds instead of the canonical space
     "reflow_no_comp_init": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow", "--disable", "comp_init"],
     # the paper's "w/o align": raw per-frame pointmaps (the initial-cloud check may fall back)
