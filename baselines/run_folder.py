@@ -282,6 +282,8 @@ def last_checkpoint(model_path: Path, record: dict[str, Any] | None = None) -> P
 
 
 def _describe_held(model_path: Path, record: dict[str, Any] | None) -> str:
+    if record is None and (model_path / RUN_FILE).exists():
+        return f"a run whose {RUN_FILE} cannot be read (truncated or overwritten?)"
     if record is None:
         from arguments.saved import read_saved_plugins
 

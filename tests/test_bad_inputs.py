@@ -9,6 +9,7 @@ their own tests at the end.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import resource
@@ -166,6 +167,8 @@ def _case_list() -> list[Case]:
         Case("render: iteration folder without extra_buffers.pth", lambda s, w: [
             str(ROOT / "render.py"), "-m", str(_without_extra_buffers(s, w))], "extra_buffers.pth missing",
              output="first"),
+        Case("render on a full disk", lambda s, w: [str(ROOT / "render.py"), "-m", str(_trained(s, w))],
+             "first/", output="first", limit_file_size=2_000, untouched=False, extra={"render": True}),
         Case("ablate --rows ''", lambda s, w: ["-m", "reflow_plugin.ablate", "-s", str(s), "-o", str(w / "out"),
                                               "--rows", ""], "--rows names none of"),
     ]
@@ -174,12 +177,17 @@ def _case_list() -> list[Case]:
 CASES = _case_list()
 
 
-def _tree(folder: Path) -> dict[str, int] | None:
+def _tree(folder: Path) -> dict[str, tuple] | None:
+    """{relative path: (mtime_ns, sha1 of the bytes)}: no changed byte, no touched file."""
     if not folder.exists():
         return None
     if folder.is_file():
-        return {"": folder.stat().st_mtime_ns}
-    return {str(p.relative_to(folder)): p.stat().st_mtime_ns for p in folder.rglob("*")}
+        return {"": _stamp(folder)}
+    return {str(p.relative_to(folder)): _stamp(p) for p in folder.rglob("*")}
+
+
+def _stamp(path: Path) -> tuple:
+    return path.stat().st_mtime_ns, hashlib.sha1(path.read_bytes()).hexdigest() if path.is_file() else None
 
 
 def _run_case(case: Case, scene: Path, work: Path) -> dict:
@@ -196,7 +204,8 @@ def _run_case(case: Case, scene: Path, work: Path) -> dict:
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
     env.pop("FOURDGS_TRACEBACK", None)
     start = time.perf_counter()
-    done = subprocess.run([sys.executable, *argv], cwd=ROOT, env=env, capture_output=True, text=True,
+    cwd = case.extra["cwd"](work) if "cwd" in case.extra else ROOT
+    done = subprocess.run([sys.executable, *argv], cwd=cwd, env=env, capture_output=True, text=True,
                           preexec_fn=limit, timeout=300)
     output = done.stdout + done.stderr
     return {"name": case.name, "rc": done.returncode, "output": output, "seconds": time.perf_counter() - start,
@@ -223,6 +232,10 @@ def test_bad_input_gives_one_error_line(outcomes, name):
     assert len(errors) == 1 and case.expect in errors[0], output[-2000:]
     if case.untouched:
         assert result["after"] == result["before"], "the output folder changed"
+    elif case.extra.get("render"):  # render.py may have written renders; its log lines are whole
+        out = result["work"] / case.output
+        assert all(json.loads(line) for line in (out / "train_log.jsonl").read_text().splitlines())
+        assert json.loads((out / "run.json").read_text())["state"] == "finished"
     else:  # the failed run's record may stay; a half-written iteration folder may not
         out = result["work"] / case.output
         assert not list((out / "point_cloud").glob("*iteration_*")), sorted(p.name for p in (out / "point_cloud").iterdir())

@@ -130,7 +130,10 @@ def _load_and_claim(args, folder: RunFolder, source: Path, embedded: bool, plugi
     except EmptySplitError as err:
         raise EmptySplitError(f"{err}{_frame_needs(plugins, 0, prefix='; ')}") from None
     if len(scene.train_cameras) < max([1] + [p.min_train_frames()[0] for p in plugins]):
-        raise ValueError(f"{source}: {len(scene.train_cameras)} training frame(s){_frame_needs(plugins, len(scene.train_cameras))}")
+        held = (f"; --no-eval trains on the {len(scene.test_cameras)} held-out frame(s) too"
+                if scene.test_cameras else "")
+        raise ValueError(f"{source}: {len(scene.train_cameras)} training frame(s)"
+                         f"{_frame_needs(plugins, len(scene.train_cameras))}{held}")
     model_path = folder.path
     folder.commit()
     try:
