@@ -65,6 +65,7 @@ LEGACY_MARKERS = ("config.json", "cfg_args", "point_cloud")
 RESTORED_FILES = ("run.json", "config.json", "cfg_args")  # put back when a continued run fails at start
 
 _current: "RunFolder | None" = None  # the run of this process (for the interrupt message)
+_held_locks: "dict[str, RunLock]" = {}  # real path of the folder -> this process's lock on it
 
 
 class RunFolderError(ValueError):
@@ -142,6 +143,8 @@ class RunLock:
     non-blocking ``flock`` and writes this PID into it; a folder locked by another live process
     raises `RunFolderError`. ``release()`` removes the lock file (and the folder, if this lock
     created it and it stayed empty) and drops the lock; the OS drops it too if the process dies.
+    A second lock on the same folder from the same process (a library user building one trainer
+    after another) takes the lock over from the first: runs of one process follow each other.
     """
 
     def __init__(self, folder: str | os.PathLike, purpose: str = "using it (training or rendering)") -> None:
@@ -157,16 +160,24 @@ class RunLock:
     def acquire(self) -> "RunLock":
         if self.fd is not None:
             return self
-        self.created = not self.folder.exists()
+        key = os.path.realpath(self.folder)
+        previous = _held_locks.pop(key, None)
+        if previous is not None and previous.fd is not None:  # this process again: take the lock over
+            self.created, previous.created = previous.created, False
+            previous.release()
+        else:
+            self.created = not self.folder.exists()
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
         except OSError as err:
             raise RunFolderError(f"-m {self.folder}: cannot create it ({err.strerror or err})") from None
         if fcntl is None:
             self.fd = -1
+            _held_locks[key] = self
             return self
         while True:  # the holder removes the file on release: lock a file that is still the path's
             try:
+                self.folder.mkdir(parents=True, exist_ok=True)  # a failed holder may have removed it
                 fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
             except OSError as err:
                 self._undo_folder()
@@ -188,6 +199,7 @@ class RunLock:
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
         self.fd = fd
+        _held_locks[key] = self
         return self
 
     def release(self) -> None:
@@ -195,6 +207,9 @@ class RunLock:
         if self.fd is None:
             return
         fd, self.fd = self.fd, None
+        key = os.path.realpath(self.folder)
+        if _held_locks.get(key) is self:
+            del _held_locks[key]
         if fd >= 0:
             try:
                 os.unlink(self.path)

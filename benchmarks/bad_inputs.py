@@ -113,7 +113,7 @@ def issue41_cases(Case, train, short, table):  # noqa: N803
         (w / "elsewhere").mkdir()
         return ["-m", "reflow_plugin.ablate", "-s", str(s), "-o", "rel_out", "--rows", "baseline", "--",
                 "--configs", str(root / "arguments" / "synthetic" / "default.py"), "--coarse_iterations", "1",
-                "--iterations", "1", "--no-eval"]
+                "--iterations", "1"]
 
     elsewhere = {"cwd": lambda w: w / "elsewhere", "ok": "elsewhere/rel_out/ablation.md"}
     return [
@@ -130,10 +130,11 @@ def issue41_cases(Case, train, short, table):  # noqa: N803
             str(root / "render.py"), "-m", str(foreign_deformation(s, w))], "is not the file the run saved",
              output="first"),
         Case("export -o an existing file", lambda s, w: ((w / "f.txt").write_text("x"), [
-            "-m", "baselines.export", "-m", str(table._trained(s, w)), "--format", "ply", "-o", str(w / "f.txt")])[1],
+            "-m", "baselines.export", "-m", str(table._trained(s, w)), "--format", "ply", "--times", "0", "-o",
+            str(w / "f.txt")])[1],
              "is a file, not a folder", output="first"),
         Case("export -o into a run's iteration folder", lambda s, w: (lambda run: [
-            "-m", "baselines.export", "-m", str(run), "--format", "ply", "-o",
+            "-m", "baselines.export", "-m", str(run), "--format", "ply", "--times", "0", "-o",
             str(run / "point_cloud" / "iteration_1")])(table._trained(s, w)), "point_cloud/", output="first"),
         Case("evaluate --images -3", lambda s, w: ["-m", "reflow_plugin.evaluate", "-m", str(table._trained(s, w)),
                                                    "--images", "-3"], "--images must be >= 0", output="first"),

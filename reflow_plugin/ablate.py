@@ -280,6 +280,8 @@ def parse_runner_args(argv: list[str] | None, prog: str, description: str, names
     names = [n.strip() for n in getattr(args, names_flag).split(",") if n.strip()]
     if not names:
         parser.error(f"--{names_flag} names none of {list(table)}")
+    if "--no-eval" in extra:  # the tables are of held-out views (results.json): a run without them fails late
+        parser.error("--no-eval after '--': the table reports held-out views; drop it")
     if not str(args.out).strip() or not args.source.strip():
         parser.error("-s and -o must not be empty (an unset shell variable?)")
     # runs start from the checkout (cwd=REPO_ROOT): paths typed relative to the caller's folder go absolute

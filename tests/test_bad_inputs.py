@@ -102,6 +102,20 @@ def _garbage_run_json(scene: Path, work: Path) -> Path:
     return run
 
 
+def _log_near_limit(scene: Path, work: Path, limit: int) -> Path:
+    """A finished run whose train_log.jsonl ends 60 bytes short of `limit`: render.py's next log line
+    crosses a file-size limit of `limit` bytes (a disk that fills up mid-line)."""
+    run = _trained(scene, work)
+    log = run / "train_log.jsonl"
+    size = log.stat().st_size
+    assert size < limit - 80, size
+    pad = limit - 60 - size
+    with open(log, "a") as handle:
+        handle.write(json.dumps({"kind": "pad", "x": "p" * (pad - 25)}).ljust(pad - 1) + "\n")
+    assert log.stat().st_size == limit - 60
+    return run
+
+
 def _without_extra_buffers(scene: Path, work: Path) -> Path:
     run = _trained(scene, work)
     (run / "point_cloud" / "iteration_1" / "extra_buffers.pth").unlink()
@@ -167,8 +181,8 @@ def _case_list() -> list[Case]:
         Case("render: iteration folder without extra_buffers.pth", lambda s, w: [
             str(ROOT / "render.py"), "-m", str(_without_extra_buffers(s, w))], "extra_buffers.pth missing",
              output="first"),
-        Case("render on a full disk", lambda s, w: [str(ROOT / "render.py"), "-m", str(_trained(s, w))],
-             "first/", output="first", limit_file_size=2_000, untouched=False, extra={"render": True}),
+        Case("render on a full disk", lambda s, w: [str(ROOT / "render.py"), "-m", str(_log_near_limit(s, w, 20_000))],
+             "first/train_log.jsonl", output="first", limit_file_size=20_000, untouched=False, extra={"render": True}),
         Case("ablate --rows ''", lambda s, w: ["-m", "reflow_plugin.ablate", "-s", str(s), "-o", str(w / "out"),
                                               "--rows", ""], "--rows names none of"),
     ]

@@ -58,17 +58,34 @@ def _copy(run: Path, tmp_path: Path, name: str = "copy") -> Path:
     return target
 
 
+class _Holder:
+    """Another process holding the lock of `folder` until `release()` (it waits on its stdin)."""
+
+    def __init__(self, folder: Path) -> None:
+        code = ("import sys; from pathlib import Path; from baselines.run_folder import RunLock; "
+                f"lock = RunLock(Path({str(folder)!r})).acquire(); print('held', flush=True); sys.stdin.read(); "
+                "lock.release()")
+        self.process = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, stdin=subprocess.PIPE,
+                                        stdout=subprocess.PIPE, text=True)
+        assert self.process.stdout.readline().strip() == "held"
+
+    def release(self) -> None:
+        self.process.communicate("", timeout=60)
+        assert self.process.returncode == 0
+
+
 def test_a_locked_folder_is_refused_and_a_stale_lock_file_is_not_a_lock(tiny_scene, finished, tmp_path):
     out = tmp_path / "out"
-    held = run_folder.RunLock(out).acquire()  # another open file description: flock conflicts as across processes
+    holder = _Holder(out)
     try:
         before = _tree(out)
-        with pytest.raises(RunFolderError, match=rf"-m {out}: another process \(pid {os.getpid()}\) is using it"):
+        pid = holder.process.pid
+        with pytest.raises(RunFolderError, match=rf"-m {out}: another process \(pid {pid}\) is using it"):
             _train(tiny_scene, out)
         assert _tree(out) == before  # refused before the first write
-        assert (out / run_folder.LOCK_FILE).read_text().strip() == str(os.getpid())
+        assert (out / run_folder.LOCK_FILE).read_text().strip() == str(pid)
     finally:
-        held.release()
+        holder.release()
     assert not out.exists()  # the lock created the folder and removed it again
 
     # a lock file a killed process left (no flock on it any more): the run takes the folder
@@ -79,12 +96,18 @@ def test_a_locked_folder_is_refused_and_a_stale_lock_file_is_not_a_lock(tiny_sce
 
     # render.py writes into the folder too: it waits for no one, it refuses
     run = _copy(finished, tmp_path, "render_me")
-    held = run_folder.RunLock(run).acquire()
+    holder = _Holder(run)
     try:
         with pytest.raises(RunFolderError, match="another process"):
             render_from_argv(["-m", str(run), "--skip_video", "--skip_train"])
     finally:
-        held.release()
+        holder.release()
+    # within one process, runs follow each other: a later claim takes the lock over
+    first = run_folder.RunLock(run).acquire()
+    second = run_folder.RunLock(run).acquire()
+    assert first.fd is None and second.held and (run / run_folder.LOCK_FILE).is_file()
+    second.release()
+    assert not (run / run_folder.LOCK_FILE).exists() and run.is_dir()
 
 
 def test_an_empty_model_path_is_refused(tiny_scene, tmp_path, monkeypatch):
