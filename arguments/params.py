@@ -182,8 +182,8 @@ class OptimizationParams:
     zerostamp_init: bool = param(False, "coarse stage uses only the views at time 0 (4DGS, for "
                                         "multi-view video)", compat=True)
     custom_sampler: str | None = param(None, "4DGS: custom DataLoader sampler", compat=True)
-    iterations: int = param(30_000, "iterations of the fine stage (>= 1: the fine model is what a run saves)",
-                            check=_check_positive)
+    iterations: int = param(30_000, "iterations of the fine stage (train.py needs >= 1: the fine model is "
+                            "what a run saves)", check=_check_non_negative)
     coarse_iterations: int = param(3000, "iterations of the coarse (static) stage",
                                    check=_check_non_negative)
     position_lr_init: float = param(0.00016, "initial learning rate of positions "

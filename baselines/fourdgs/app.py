@@ -229,6 +229,11 @@ def train_from_argv(argv: list[str]) -> RunSummary:
     """The whole of train.py: build, train, evaluate."""
     logging.basicConfig(level=logging.INFO, format="[%(name)s] %(message)s")
     trainer = build_trainer(argv)
+    if trainer.opt.iterations == 0:  # (build_trainer alone may take 0: tests of an untrained model)
+        trainer.run_log.close()
+        trainer.run_folder.abandon()
+        raise ValueError("--iterations 0: the run would save no model (the fine stage is what render.py, "
+                         "export and the viewer load); give --iterations >= 1")
     if trainer.run.detect_anomaly:
         torch.autograd.set_detect_anomaly(True)
     folder = trainer.run_folder
