@@ -199,7 +199,7 @@ def main() -> int:
         count += ok
         print(f"| {r['name']} | {r['seconds']:.1f} | {r['rc']} | {'yes' if ok else 'NO'} | {line.replace('|', '/')} |")
     root = os.environ.get("REFLOW_BAD_INPUTS_ROOT", "this checkout")
-    print(f"\n{count} of {len(results)} inputs end with one clean error line ({root}); {wall:.0f} s wall, "
+    print(f"\n{count} of {len(results)} inputs end cleanly (one error line; \"ok\" cases: exit 0) ({root}); {wall:.0f} s wall, "
           f"{args.jobs} at a time; load {open('/proc/loadavg').read().split()[0]}")
     print(json.dumps({"clean": count, "tried": len(results), "wall_s": round(wall, 1)}))
     return 0
