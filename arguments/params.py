@@ -65,6 +65,10 @@ def _check_positive(value: int) -> str | None:
     return None if value > 0 else f"must be > 0, got {value}"
 
 
+def _check_seed(value: int) -> str | None:
+    return None if 0 <= value < 2**32 else f"must be in [0, 2**32 - 1] (numpy's seed range), got {value}"
+
+
 @dataclass
 class ModelParams:
     """Dataset loading and model size (4DGS "Loading Parameters")."""
@@ -184,7 +188,8 @@ class OptimizationParams:
     zerostamp_init: bool = param(False, "coarse stage uses only the views at time 0 (4DGS, for "
                                         "multi-view video)", compat=True)
     custom_sampler: str | None = param(None, "4DGS: custom DataLoader sampler", compat=True)
-    iterations: int = param(30_000, "iterations of the fine stage", check=_check_non_negative)
+    iterations: int = param(30_000, "iterations of the fine stage (train.py needs >= 1: the fine model is "
+                            "what a run saves)", check=_check_non_negative)
     coarse_iterations: int = param(3000, "iterations of the coarse (static) stage",
                                    check=_check_non_negative)
     position_lr_init: float = param(0.00016, "initial learning rate of positions "
@@ -234,7 +239,7 @@ class OptimizationParams:
     batch_size: int = param(1, "views per iteration", check=_check_positive)
     add_point: bool = param(False, "grow points during densification (4DGS's gaussians.grow)", compat=True)
     # --- ours ---
-    seed: int = param(0, "random seed (torch, numpy, python)", ours=True)
+    seed: int = param(0, "random seed (torch, numpy, python)", ours=True, check=_check_seed)
     densify_max_gaussians: int = param(360_000, "no densification above this many Gaussians "
                                        "(4DGS hard-codes 360000)", ours=True, check=_check_positive)
     prune_min_gaussians: int = param(200_000, "opacity pruning runs only above this many "

@@ -5,8 +5,8 @@
 - input errors (bad flags, files, config keys, plugins, model folders), OS failures (a full disk, a
   read-only folder: the path and the OS reason) and a diverged training print ``error: ...``
   (one line) and exit 2;
-- Ctrl-C prints where the run stopped, its last checkpoint and the exact command that resumes it,
-  and exits 130.
+- Ctrl-C (or SIGTERM) prints where the run stopped, its last checkpoint and the exact command that
+  resumes it, and exits 130 (143 after SIGTERM).
 
 ``FOURDGS_TRACEBACK=1`` shows the full traceback instead. This module imports no torch, so train.py
 can refuse a model folder before torch loads (run_folder.precheck_model_folder).
@@ -91,4 +91,4 @@ def run_cli(entry: Callable[[], int]) -> None:
         if os.environ.get("FOURDGS_TRACEBACK"):
             raise
         print(interrupted_line(exc), file=sys.stderr)
-        sys.exit(130)
+        sys.exit(128 + getattr(exc, "signum", 2))  # 130 after Ctrl-C, 143 after SIGTERM

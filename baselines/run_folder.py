@@ -21,6 +21,14 @@ iteration folder and checkpoint, and the run ends "finished", "failed" (with the
 "interrupted" (with the iteration and the last checkpoint). `render.py` renders only iteration
 folders that the run described by the folder's config saved (`check_saved_iteration`).
 
+One process at a time: `RunLock` holds an exclusive OS lock (``fcntl.flock``) on
+``<model_path>/.run.lock`` from before the folder's first write to the end of the process's work
+on it (train.py for the whole run, render.py while it writes), with the holder's PID written in the
+file. A second process on the same folder is refused with one line naming that PID. A lock file
+left behind by a killed process is not a lock: the OS drops a flock when its holder dies, so the
+next run takes it at once (the PID in the file is only reported, never trusted). Where fcntl does
+not exist (Windows) the lock is skipped, so the import still works.
+
 This module imports no torch: train.py runs `precheck_model_folder` on a typed `-m` before torch
 loads, so a refused folder costs no start-up time.
 """
@@ -37,11 +45,17 @@ import time
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
+
+try:
+    import fcntl
+except ImportError:  # Windows: no flock; runs are not locked there
+    fcntl = None  # type: ignore[assignment]
 
 log = logging.getLogger("train")
 
 RUN_FILE = "run.json"
+LOCK_FILE = ".run.lock"
 RUN_FORMAT = "reflow-4dgs/run"
 # what the host writes into a model folder (plugins add their own: Plugin.outputs)
 HOST_OUTPUTS = ("run.json", "cfg_args", "config.json", "point_cloud", "test", "train", "video",
@@ -51,6 +65,7 @@ LEGACY_MARKERS = ("config.json", "cfg_args", "point_cloud")
 RESTORED_FILES = ("run.json", "config.json", "cfg_args")  # put back when a continued run fails at start
 
 _current: "RunFolder | None" = None  # the run of this process (for the interrupt message)
+_held_locks: "dict[str, RunLock]" = {}  # real path of the folder -> this process's lock on it
 
 
 class RunFolderError(ValueError):
@@ -58,11 +73,12 @@ class RunFolderError(ValueError):
 
 
 class TrainingInterrupted(Exception):
-    """Training stopped on request (Ctrl-C) at a consistent point; `checkpoint` resumes it exactly."""
+    """Training stopped on request (Ctrl-C, SIGTERM: `signum`) at a consistent point; `checkpoint`
+    resumes it exactly."""
 
-    def __init__(self, stage: str, iteration: int, checkpoint: Path | None) -> None:
+    def __init__(self, stage: str, iteration: int, checkpoint: Path | None, signum: int = 2) -> None:
         super().__init__(f"interrupted at {stage} iteration {iteration}")
-        self.stage, self.iteration, self.checkpoint = stage, iteration, checkpoint
+        self.stage, self.iteration, self.checkpoint, self.signum = stage, iteration, checkpoint, signum
 
 
 @dataclass(frozen=True)
@@ -100,6 +116,123 @@ def read_run_record(model_path: str | os.PathLike) -> dict[str, Any] | None:
     except (OSError, ValueError):
         return None
     return data if isinstance(data, dict) and data.get("format") == RUN_FORMAT else None
+
+
+def require_run_record(model_path: str | os.PathLike) -> dict[str, Any] | None:
+    """The folder's run.json; None only when there is none (an older or 4DGS output).
+
+    A run.json that exists but cannot be read (truncated, garbage, another format) raises
+    `RunFolderError`: without it nobody can tell which iteration folders the run saved, so no
+    consumer may pick a "latest" one (it could be another run's leftover).
+    """
+    path = Path(model_path) / RUN_FILE
+    if not path.exists():
+        return None
+    record = read_run_record(model_path)
+    if record is None:
+        raise RunFolderError(f"{path} cannot be read as this project's run record (truncated or overwritten?): "
+                             "it says which iteration folders the run saved; restore it, or retrain with "
+                             "--overwrite")
+    return record
+
+
+class RunLock:
+    """An exclusive lock on a run folder, held by this process (see the module docstring).
+
+    ``acquire()`` creates the folder if needed (``created`` says so) and the lock file, takes a
+    non-blocking ``flock`` and writes this PID into it; a folder locked by another live process
+    raises `RunFolderError`. ``release()`` removes the lock file (and the folder, if this lock
+    created it and it stayed empty) and drops the lock; the OS drops it too if the process dies.
+    A second lock on the same folder from the same process (a library user building one trainer
+    after another) takes the lock over from the first: runs of one process follow each other.
+    """
+
+    def __init__(self, folder: str | os.PathLike, purpose: str = "using it (training or rendering)") -> None:
+        self.folder, self.purpose = Path(folder), purpose
+        self.path = self.folder / LOCK_FILE
+        self.fd: int | None = None
+        self.created = False
+
+    @property
+    def held(self) -> bool:
+        return self.fd is not None
+
+    def acquire(self) -> "RunLock":
+        if self.fd is not None:
+            return self
+        key = os.path.realpath(self.folder)
+        previous = _held_locks.pop(key, None)
+        if previous is not None and previous.fd is not None:  # this process again: take the lock over
+            self.created, previous.created = previous.created, False
+            previous.release()
+        else:
+            self.created = not self.folder.exists()
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise RunFolderError(f"-m {self.folder}: cannot create it ({err.strerror or err})") from None
+        if fcntl is None:
+            self.fd = -1
+            _held_locks[key] = self
+            return self
+        while True:  # the holder removes the file on release: lock a file that is still the path's
+            try:
+                self.folder.mkdir(parents=True, exist_ok=True)  # a failed holder may have removed it
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            except OSError as err:
+                self._undo_folder()
+                raise RunFolderError(f"cannot create {self.path} ({err.strerror or err})") from None
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                holder = _read_pid(fd)
+                os.close(fd)
+                raise RunFolderError(f"-m {self.folder}: another process (pid {holder or 'unknown'}) is "
+                                     f"{self.purpose}; wait for it to end, or choose another -m") from None
+            try:
+                same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        self.fd = fd
+        _held_locks[key] = self
+        return self
+
+    def release(self) -> None:
+        """Drop the lock (idempotent); the lock file goes first, so no one locks a removed file."""
+        if self.fd is None:
+            return
+        fd, self.fd = self.fd, None
+        key = os.path.realpath(self.folder)
+        if _held_locks.get(key) is self:
+            del _held_locks[key]
+        if fd >= 0:
+            try:
+                os.unlink(self.path)
+            except OSError:
+                pass
+            os.close(fd)
+        self._undo_folder()
+
+    def _undo_folder(self) -> None:
+        if self.created:
+            try:
+                self.folder.rmdir()  # only if this run wrote nothing else into it
+            except OSError:
+                pass
+
+
+def _read_pid(fd: int) -> int | None:
+    try:
+        os.lseek(fd, 0, os.SEEK_SET)
+        text = os.read(fd, 32).decode(errors="replace").strip()
+        return int(text) if text.isdigit() else None
+    except OSError:
+        return None
 
 
 def _holds_run(folder: Path) -> bool:
@@ -164,6 +297,8 @@ def last_checkpoint(model_path: Path, record: dict[str, Any] | None = None) -> P
 
 
 def _describe_held(model_path: Path, record: dict[str, Any] | None) -> str:
+    if record is None and (model_path / RUN_FILE).exists():
+        return f"a run whose {RUN_FILE} cannot be read (truncated or overwritten?)"
     if record is None:
         from arguments.saved import read_saved_plugins
 
@@ -292,6 +427,22 @@ class RunFolder:
         self.record: dict[str, Any] = {}
         self.created = False
         self.writes = 0  # iteration folders and checkpoints this process saved
+        self.lock = RunLock(self.path)  # taken by `claim` before the folder's first write
+
+    def claim(self, recheck: "Callable[[], FolderPlan]") -> None:
+        """Lock the folder for this process, then decide again under the lock (`recheck`: the
+        `check_run_folder` call that made the plan): a run that committed between the first check
+        and the lock is seen now. Raises `RunFolderError` (lock released) if the folder is taken."""
+        self.lock.acquire()
+        try:
+            self.plan = recheck()
+        except BaseException:
+            self.lock.release()
+            raise
+
+    def release(self) -> None:
+        """End this process's hold on the folder (the OS would drop the lock at exit anyway)."""
+        self.lock.release()
 
     def commit(self) -> None:
         """Clear (--overwrite), create the folder and write run.json: from here on the folder is this run's."""
@@ -302,7 +453,7 @@ class RunFolder:
                 entry = self.path / name
                 shutil.rmtree(entry) if entry.is_dir() and not entry.is_symlink() else entry.unlink()
             log.info("--overwrite: cleared %s of the earlier run (%s)", self.path, ", ".join(plan.clear_names) or "nothing")
-        self.created = not self.path.exists()
+        self.created = self.lock.created or not self.path.exists()
         self.path.mkdir(parents=True, exist_ok=True)
         stale = remove_stale_staging(self.path)
         if stale:
@@ -310,7 +461,8 @@ class RunFolder:
                      ", ".join(p.name for p in stale))
         self._snapshot()
         previous = plan.previous if plan.continuing else None
-        foreign = sorted(p.name for p in self.path.iterdir() if p.name != RUN_FILE) if not plan.continuing else []
+        foreign = sorted(p.name for p in self.path.iterdir()
+                         if p.name not in (RUN_FILE, LOCK_FILE)) if not plan.continuing else []
         now = time.strftime("%Y-%m-%dT%H:%M:%S%z")
         self.record = {
             "format": RUN_FORMAT, "version": 1,
@@ -352,6 +504,7 @@ class RunFolder:
             _current = None
         try:
             if self.created:
+                self.lock.release()
                 shutil.rmtree(self.path, ignore_errors=True)
                 return
             for entry in self.path.iterdir():
@@ -364,6 +517,8 @@ class RunFolder:
                 os.truncate(log_file, self._log_size)
         except OSError:
             pass
+        finally:
+            self.lock.release()
 
     def _write(self) -> None:
         from arguments.saved import atomic_write_text
@@ -420,7 +575,7 @@ def current_run() -> RunFolder | None:
 
 def check_saved_iteration(model_path: Path, folder: Path) -> None:
     """render.py's check: `folder` must have been saved by the run the model folder describes."""
-    record = read_run_record(model_path)
+    record = require_run_record(model_path)
     if record is None:
         return  # an older or 4DGS output: nothing recorded to check against
     rel = str(folder.relative_to(model_path)) if folder.is_relative_to(model_path) else str(folder)
@@ -460,13 +615,23 @@ def check_upgrade_plugins(path: Path, mine: RunIdentity) -> None:
                              f"add --plugin {','.join(missing)}")
 
 
+def check_typed_model_path(value: str | None, flag: str = "-m") -> None:
+    """An empty `-m ""` (an unset shell variable) is refused: it would mean the default folder."""
+    if value is not None and not value.strip():
+        raise RunFolderError(f'{flag} is empty ({flag} "", an unset shell variable?): give a folder, or leave '
+                             f"{flag} out for the default")
+
+
 def precheck_model_folder(argv: list[str]) -> None:
     """train.py's first check, before torch loads: a typed `-m` that is a file, cannot be written, or
     (without --overwrite / --start_checkpoint) holds a run. The full check follows the parse."""
     from baselines.cli_exit import flag_value, has_flag
 
     model = flag_value(argv, "-m", "--model_path")
-    if not model or has_flag(argv, "-h", "--help"):
+    if has_flag(argv, "-h", "--help"):
+        return
+    check_typed_model_path(model)
+    if not model:
         return
     if has_flag(argv, "--overwrite") or flag_value(argv, "--start_checkpoint"):
         problem = _writable_error(Path(model)) if not Path(model).is_file() else "is a file, not a folder"

@@ -32,7 +32,8 @@ LocalExecutor (processes on this machine, at most `--jobs` at a time) or its Slu
 job per run; `--slurm_partition`, `--timeout_min`). Rows that need part 2 (comp_init) say in the
 table when the canonical space was unavailable. Outputs: `OUT/ablation.md` (the paper's layout:
 one block of PSNR / SSIM / LPIPS per scene and the mean, plus flow EPE and PSNR-dynamic),
-`OUT/ablation.json`, `OUT/ablation.csv`.
+`OUT/ablation.json`, `OUT/ablation.csv`. Paths (`-s`, `-o`, and existing files named after `--`) are
+taken relative to the folder the command is run from, although the runs start in the checkout.
 """
 from __future__ import annotations
 
@@ -276,7 +277,18 @@ def parse_runner_args(argv: list[str] | None, prog: str, description: str, names
         example = " ".join(unknown[:2])
         parser.error(f"unrecognized arguments: {' '.join(unknown)} (train.py flags go after '--', "
                      f"e.g. {prog} -s ... -o ... -- {example})")
-    names = [n for n in getattr(args, names_flag).split(",") if n]
+    names = [n.strip() for n in getattr(args, names_flag).split(",") if n.strip()]
+    if not names:
+        parser.error(f"--{names_flag} names none of {list(table)}")
+    if "--no-eval" in extra:  # the tables are of held-out views (results.json): a run without them fails late
+        parser.error("--no-eval after '--': the table reports held-out views; drop it")
+    if not str(args.out).strip() or not args.source.strip():
+        parser.error("-s and -o must not be empty (an unset shell variable?)")
+    # runs start from the checkout (cwd=REPO_ROOT): paths typed relative to the caller's folder go absolute
+    args.out = Path(os.path.abspath(args.out))
+    if not args.source.startswith("suite:"):
+        args.source = os.path.abspath(args.source)
+    extra = [os.path.abspath(a) if not a.startswith("-") and os.path.exists(a) else a for a in extra]
     return args, names, extra
 
 

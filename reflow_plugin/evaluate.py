@@ -146,6 +146,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m reflow_plugin.evaluate", add_help=True)
     parser.add_argument("--images", type=int, default=4, help="flow pictures to write (0 = none)")
     own, rest = parser.parse_known_args(argv)
+    if own.images < 0:
+        parser.error(f"--images must be >= 0 (0 = none), got {own.images}")
     logging.basicConfig(level=logging.INFO, format="[%(name)s] %(message)s")
     loaded = load_run(rest)
     trainer = loaded.trainer

@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from baselines.fourdgs.run_log import read_log
+
 COST_COLUMNS = ("train_s", "train_cpu_s", "peak_rss_mib", "render_fps", "model_mib", "PSNR")
 
 
@@ -43,8 +45,7 @@ def find_runs(out: Path) -> dict[tuple[str, str], Path]:
 def curve(run: Path) -> list[tuple[float, float, float]]:
     """[(train wall s, train CPU s, test PSNR)] of the run's "test" events that carry timing."""
     points = []
-    for line in (run / "train_log.jsonl").read_text().splitlines():
-        record = json.loads(line)
+    for record in read_log(run / "train_log.jsonl"):
         if record.get("kind") == "test" and "train_seconds" in record and record.get("test_psnr") is not None:
             points.append((record["train_seconds"], record["train_cpu_seconds"], record["test_psnr"]))
     return points
@@ -52,9 +53,11 @@ def curve(run: Path) -> list[tuple[float, float, float]]:
 
 def cost(run: Path) -> dict[str, float | None]:
     """The cost-table figures of one run (None where the run does not have them)."""
-    end = [json.loads(line) for line in (run / "train_log.jsonl").read_text().splitlines()]
-    end = [r for r in end if r.get("kind") == "train_end"]
-    results = json.loads((run / "results.json").read_text())
+    end = [r for r in read_log(run / "train_log.jsonl") if r.get("kind") == "train_end"]
+    try:
+        results = json.loads((run / "results.json").read_text())
+    except ValueError as err:
+        raise ValueError(f"{run / 'results.json'}: not JSON ({err})") from None
     keys = [k for k in results if k.startswith("ours_")]
     final = results[max(keys, key=lambda k: int(k.split("_")[1]))] if keys else {}
     clouds = sorted((run / "point_cloud").glob("iteration_*"), key=lambda p: int(p.name.split("_")[1]))
@@ -157,6 +160,15 @@ def plot(runs: dict[tuple[str, str], Path], path: Path, pareto: bool = False) ->
 
 
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except (OSError, ValueError) as err:  # an unreadable log or results.json: one line naming it
+        text = str(err).strip()
+        print(f"error: {text.splitlines()[0] if text else type(err).__name__}", file=sys.stderr)
+        return 2
+
+
+def _main(argv: list[str] | None) -> int:
     parser = argparse.ArgumentParser(prog="python -m reflow_plugin.report", description=__doc__.splitlines()[0])
     parser.add_argument("out", type=Path)
     parser.add_argument("--plot", type=Path)

@@ -1,13 +1,15 @@
-"""Bad inputs through the public command lines, each in a subprocess (issue 25).
+"""Bad inputs through the public command lines, each in a subprocess (issues 25 and 41).
 
 Every case must end with exit code 2, exactly one line containing ``error:``, no traceback, and
 the output folder untouched (or absent). Cases run two at a time (each subprocess pays the torch
 import, ~2-3 s on a quiet 2-core machine). ``REFLOW_BAD_INPUTS_ROOT=/path/to/checkout`` runs the
 same table against another checkout (used to count how many cases an older version got right).
-Ctrl-C (exit 130, one line) has its own test at the end.
+Ctrl-C and SIGTERM (exit 130 / 143, one line) and two trainings started together on one folder have
+their own tests at the end.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import resource
@@ -74,6 +76,52 @@ def _one_frame(scene: Path) -> None:
             extra.unlink()
 
 
+_HELD_LOCKS: list = []  # locks this process holds for a case's subprocess (released at exit)
+
+
+def _trained(scene: Path, work: Path, *extra: str) -> Path:
+    """A finished short run (fine iteration 1 saved, checkpointed) in work/first, trained in a subprocess."""
+    run = work / "first"
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
+    subprocess.run([sys.executable, *_train("-s", str(scene), "-m", str(run), *SHORT, "--checkpoint_iterations", "1",
+                                            *extra)], cwd=ROOT, env=env, check=True, capture_output=True, timeout=300)
+    return run
+
+
+def _locked(folder: Path) -> Path:
+    from baselines.run_folder import RunLock
+
+    _HELD_LOCKS.append(RunLock(folder).acquire())
+    return folder
+
+
+def _garbage_run_json(scene: Path, work: Path) -> Path:
+    run = _trained(scene, work)
+    shutil.copytree(run / "point_cloud" / "iteration_1", run / "point_cloud" / "iteration_40")
+    (run / "run.json").write_text((run / "run.json").read_text()[:40])
+    return run
+
+
+def _log_near_limit(scene: Path, work: Path, limit: int) -> Path:
+    """A finished run whose train_log.jsonl ends 60 bytes short of `limit`: render.py's next log line
+    crosses a file-size limit of `limit` bytes (a disk that fills up mid-line)."""
+    run = _trained(scene, work)
+    log = run / "train_log.jsonl"
+    size = log.stat().st_size
+    assert size < limit - 80, size
+    pad = limit - 60 - size
+    with open(log, "a") as handle:
+        handle.write(json.dumps({"kind": "pad", "x": "p" * (pad - 25)}).ljust(pad - 1) + "\n")
+    assert log.stat().st_size == limit - 60
+    return run
+
+
+def _without_extra_buffers(scene: Path, work: Path) -> Path:
+    run = _trained(scene, work)
+    (run / "point_cloud" / "iteration_1" / "extra_buffers.pth").unlink()
+    return run
+
+
 def _case_list() -> list[Case]:
     return [
         Case("-m is a file", lambda s, w: _train("-s", str(s), "-m", str(s / "poses_bounds.npy"), *SHORT),
@@ -120,18 +168,40 @@ def _case_list() -> list[Case]:
         Case("report: no finished run", lambda s, w: ((w / "out").mkdir(), ["-m", "reflow_plugin.report",
                                                                           str(w / "out")])[1],
              "no finished run"),
+        # issue 41
+        Case("-m locked by another process", lambda s, w: _train("-s", str(s), "-m", str(_locked(w / "out")), *SHORT),
+             "another process (pid"),
+        Case('-m "" (an unset shell variable)', lambda s, w: _train("-s", str(s), "-m", "", *SHORT), "-m is empty"),
+        Case("--no-eval checkpoint resumed with --eval", lambda s, w: _train(
+            "-s", str(s), "-m", str(w / "out"), *SHORT[:-1], "--eval", "--start_checkpoint",
+            str(_trained(s, w) / "chkpnt_fine_1.pth")), "it was trained with --no-eval: give the same"),
+        Case("render: run.json truncated, a leftover iteration", lambda s, w: [
+            str(ROOT / "render.py"), "-m", str(_garbage_run_json(s, w))], "run.json cannot be read",
+             output="first"),
+        Case("render: iteration folder without extra_buffers.pth", lambda s, w: [
+            str(ROOT / "render.py"), "-m", str(_without_extra_buffers(s, w))], "extra_buffers.pth missing",
+             output="first"),
+        Case("render on a full disk", lambda s, w: [str(ROOT / "render.py"), "-m", str(_log_near_limit(s, w, 20_000))],
+             "first/train_log.jsonl", output="first", limit_file_size=20_000, untouched=False, extra={"render": True}),
+        Case("ablate --rows ''", lambda s, w: ["-m", "reflow_plugin.ablate", "-s", str(s), "-o", str(w / "out"),
+                                              "--rows", ""], "--rows names none of"),
     ]
 
 
 CASES = _case_list()
 
 
-def _tree(folder: Path) -> dict[str, int] | None:
+def _tree(folder: Path) -> dict[str, tuple] | None:
+    """{relative path: (mtime_ns, sha1 of the bytes)}: no changed byte, no touched file."""
     if not folder.exists():
         return None
     if folder.is_file():
-        return {"": folder.stat().st_mtime_ns}
-    return {str(p.relative_to(folder)): p.stat().st_mtime_ns for p in folder.rglob("*")}
+        return {"": _stamp(folder)}
+    return {str(p.relative_to(folder)): _stamp(p) for p in folder.rglob("*")}
+
+
+def _stamp(path: Path) -> tuple:
+    return path.stat().st_mtime_ns, hashlib.sha1(path.read_bytes()).hexdigest() if path.is_file() else None
 
 
 def _run_case(case: Case, scene: Path, work: Path) -> dict:
@@ -148,7 +218,8 @@ def _run_case(case: Case, scene: Path, work: Path) -> dict:
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
     env.pop("FOURDGS_TRACEBACK", None)
     start = time.perf_counter()
-    done = subprocess.run([sys.executable, *argv], cwd=ROOT, env=env, capture_output=True, text=True,
+    cwd = case.extra["cwd"](work) if "cwd" in case.extra else ROOT
+    done = subprocess.run([sys.executable, *argv], cwd=cwd, env=env, capture_output=True, text=True,
                           preexec_fn=limit, timeout=300)
     output = done.stdout + done.stderr
     return {"name": case.name, "rc": done.returncode, "output": output, "seconds": time.perf_counter() - start,
@@ -175,13 +246,18 @@ def test_bad_input_gives_one_error_line(outcomes, name):
     assert len(errors) == 1 and case.expect in errors[0], output[-2000:]
     if case.untouched:
         assert result["after"] == result["before"], "the output folder changed"
+    elif case.extra.get("render"):  # render.py may have written renders; its log lines are whole
+        out = result["work"] / case.output
+        assert all(json.loads(line) for line in (out / "train_log.jsonl").read_text().splitlines())
+        assert json.loads((out / "run.json").read_text())["state"] == "finished"
     else:  # the failed run's record may stay; a half-written iteration folder may not
         out = result["work"] / case.output
         assert not list((out / "point_cloud").glob("*iteration_*")), sorted(p.name for p in (out / "point_cloud").iterdir())
         assert json.loads((out / "run.json").read_text())["state"] == "failed"
 
 
-def test_ctrl_c_prints_one_line_with_the_resume_command(tiny_scene, tmp_path):
+@pytest.mark.parametrize("signum,code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_ctrl_c_prints_one_line_with_the_resume_command(tiny_scene, tmp_path, signum, code):
     out = tmp_path / "out"
     argv = [sys.executable, str(ROOT / "train.py"), "-s", str(tiny_scene), "-m", str(out), "--configs", CONFIG,
             "--coarse_iterations", "100000", "--iterations", "1", "--quiet", "--no-eval", "--log_every", "1"]
@@ -193,11 +269,34 @@ def test_ctrl_c_prints_one_line_with_the_resume_command(tiny_scene, tmp_path):
         if log.is_file() and '"kind": "iter"' in log.read_text():
             break
         time.sleep(0.2)
-    process.send_signal(signal.SIGINT)
+    process.send_signal(signum)
     stdout, stderr = process.communicate(timeout=120)
-    assert process.returncode == 130, stderr[-2000:]
+    assert process.returncode == code, stderr[-2000:]
     assert "Traceback" not in stderr
     lines = [line for line in stderr.splitlines() if line.startswith("interrupted")]
     assert len(lines) == 1 and "last checkpoint" in lines[0] and "--start_checkpoint" in lines[0], stderr[-2000:]
     checkpoint = lines[0].split("last checkpoint ", 1)[1].split(";", 1)[0]
     assert Path(checkpoint).is_file() and json.loads((out / "run.json").read_text())["state"] == "interrupted"
+
+
+def test_two_trainings_started_together_on_one_folder(tiny_scene, tmp_path):
+    """Exactly one trains into the folder; the other ends with one line (the lock, or the finished run
+    it finds), whichever order the OS runs them in."""
+    out = tmp_path / "out"
+    argv = _train("-s", str(tiny_scene), "-m", str(out), *SHORT, "--log_every", "1")
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
+    processes = [subprocess.Popen([sys.executable, *argv], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    results = [(p.wait(timeout=300), p.communicate()[1], p.pid) for p in processes]
+    codes = sorted(code for code, _, _ in results)
+    assert codes == [0, 2], results
+    winner = next(pid for code, _, pid in results if code == 0)
+    loser = next(err for code, err, _ in results if code == 2)
+    errors = [line for line in loser.splitlines() if "error:" in line]
+    assert len(errors) == 1 and ("another process" in errors[0] or "already holds" in errors[0]), loser[-2000:]
+    assert "Traceback" not in loser
+    record = json.loads((out / "run.json").read_text())
+    assert record["state"] == "finished" and record["pid"] == winner
+    log = [json.loads(line) for line in (out / "train_log.jsonl").read_text().splitlines()]
+    assert [r["kind"] for r in log].count("train_end") == 1 and [r["kind"] for r in log].count("model_created") == 1
+    assert not (out / ".run.lock").exists()

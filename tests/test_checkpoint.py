@@ -43,7 +43,7 @@ def test_point_cloud_dir_round_trip(tmp_path):
     folder = point_cloud_dir(tmp_path, 700, "fine")
     save_point_cloud_dir(model, folder)
     assert sorted(os.listdir(folder)) == ["deformation.pth", "deformation_accum.pth", "deformation_table.pth",
-                                          "extra_buffers.pth", "point_cloud.ply"]
+                                          "extra_buffers.pth", "manifest.json", "point_cloud.ply"]
 
     loaded = GaussianModel(3, hidden_args())
     load_point_cloud_dir(folder, loaded)
@@ -144,6 +144,9 @@ def test_mismatched_table_is_rejected_before_the_model_changes(tmp_path):
     torch.save(torch.ones(7, dtype=torch.bool), tmp_path / "deformation_table.pth")
     target = make_model(count=3, seed=1)
     xyz_before = target._xyz.detach().clone()
+    with pytest.raises(ValueError, match=r"deformation_table\.pth is not the file the run saved there"):
+        load_point_cloud_dir(tmp_path, target)  # the manifest catches it first
+    (tmp_path / "manifest.json").unlink()  # a folder without one (4DGS's): the shape check
     with pytest.raises(ValueError, match=r"deformation_table\.pth.*\[8\]"):
         load_point_cloud_dir(tmp_path, target)
     assert torch.equal(target._xyz, xyz_before)

@@ -145,6 +145,9 @@ def test_bad_input_gives_one_error_line(tiny_reflow_run, tmp_path, capsys):
     table = static / "point_cloud" / "iteration_30" / "deformation_table.pth"
     torch.save(torch.zeros_like(torch.load(table)), table)
     line = _exit_line(capsys, ["-m", str(static), "--format", "tracks", "-o", str(tmp_path / "o")])
+    assert "deformation_table.pth is not the file the run saved there" in line  # the edit is caught
+    (table.parent / "manifest.json").unlink()  # unchecked (as a folder from before manifests): the table is read
+    line = _exit_line(capsys, ["-m", str(static), "--format", "tracks", "-o", str(tmp_path / "o")])
     assert "no dynamic part" in line
     assert not (tmp_path / "o").exists()
 

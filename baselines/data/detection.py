@@ -76,7 +76,8 @@ def detect_layout(source_path: Path | str, warn: bool = True) -> Detection:
     """
     source = Path(source_path)
     if not source.is_dir():
-        raise DatasetError(f"dataset folder not found: {source}")
+        raise DatasetError(f"-s {source}: is a file; -s names the dataset folder (the one holding images/ or "
+                           "poses_bounds.npy ...)" if source.is_file() else f"dataset folder not found: {source}")
     matched = [(kind, what) for kind, what, matches in SIGNATURES if matches(source)]
     if not matched:
         looked_for = "; ".join(f"{what} ({kind})" for kind, what, _ in SIGNATURES)

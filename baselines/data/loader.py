@@ -71,7 +71,8 @@ def load_scene(source_path: Path | str, dataset_type: str | None = "auto", image
             raise DatasetError(f"unknown dataset_type={dataset_type!r}; expected auto, "
                                f"{', '.join(READERS)} (aliases: {', '.join(ALIASES)})")
         if not source.is_dir():
-            raise DatasetError(f"dataset folder not found: {source}")
+            raise DatasetError(f"-s {source}: is a file; -s names the dataset folder (the one holding images/ or "
+                           "poses_bounds.npy ...)" if source.is_file() else f"dataset folder not found: {source}")
     reader = READERS[kind]
     options = dict(reader_options or {})
     accepted = set(inspect.signature(reader).parameters) - set(_COMMON_ARGUMENTS)

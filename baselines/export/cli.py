@@ -108,9 +108,22 @@ def export_tracks(loaded, args: argparse.Namespace) -> list[Path]:
     return written + [path]
 
 
+def check_export_folder(out: Path) -> None:
+    """`-o` must be a folder (or not exist yet) and not inside a run's point_cloud/ folder, where the
+    written files would mix with a saved iteration (and break its manifest)."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"-o {out}: is a file, not a folder; choose another -o")
+    resolved = out.resolve()
+    for folder in (resolved, *resolved.parents):
+        if folder.name == "point_cloud" and (folder.parent / "run.json").is_file():
+            raise ValueError(f"-o {out}: inside the run folder {folder.parent}'s point_cloud/ (its saved "
+                             "iterations); choose a folder outside it")
+
+
 def main(argv: list[str] | None = None) -> int:
     args, run_argv = parse_args(list(sys.argv[1:] if argv is None else argv))
     require_run(args.model_path)
+    check_export_folder(args.out)  # before the model loads
     logging.basicConfig(level=logging.INFO, format="[%(name)s] %(message)s")
     loaded = load_run(run_argv)
     try:

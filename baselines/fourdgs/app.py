@@ -21,8 +21,8 @@ import torch
 from baselines import thread_policy
 from baselines.cli_exit import flag_value as _flag_value, has_flag as _has_flag
 from baselines.cli_exit import interrupted_line, resume_command, run_cli  # noqa: F401  (train.py, render.py, tests)
-from baselines.run_folder import (RunFolder, RunIdentity, TrainingInterrupted, check_run_folder, check_saved_iteration,
-                                  default_model_path)
+from baselines.run_folder import (FolderPlan, RunFolder, RunIdentity, TrainingInterrupted, check_run_folder,
+                                  RunLock, check_saved_iteration, check_typed_model_path, default_model_path, require_run_record)
 
 from .evaluate import EvalResult, evaluate_cameras, render_video, write_metrics
 from .family_config import dataset_family, default_config, family_background, log_decision, strip_bare_defaults
@@ -63,10 +63,8 @@ def seed_everything(seed: int) -> None:
 
 def build_trainer(argv: list[str]) -> Trainer:
     """Parse, validate and load everything a run needs; return a Trainer ready to train."""
-    from arguments import parse_train_args, peek_plugins, write_cfg_args
+    from arguments import parse_train_args, peek_plugins
     from arguments.saved import model_dir_of_checkpoint
-    from baselines.data import load_scene
-    from baselines.data.errors import EmptySplitError
 
     typed = list(argv)
     argv, bare_defaults = strip_bare_defaults(list(argv))
@@ -96,6 +94,20 @@ def build_trainer(argv: list[str]) -> Trainer:
 
     source = REPO_ROOT / "data" / "synthetic" / EMBEDDED_SCENE if embedded else Path(args.model.source_path)
     folder = _check_model_folder(args, typed, source, plugin_classes, components)  # before any long work
+    try:
+        return _load_and_claim(args, folder, source, embedded, plugin_classes, components, decision)
+    except BaseException:
+        folder.release()  # a bad input found after the lock: the folder goes back to how it was
+        raise
+
+
+def _load_and_claim(args, folder: RunFolder, source: Path, embedded: bool, plugin_classes: list[type[Plugin]],
+                    components: dict[str, frozenset[str]], decision) -> Trainer:
+    """build_trainer's second half, under the folder's lock: load the dataset, commit the folder."""
+    from arguments import write_cfg_args
+    from baselines.data import load_scene
+    from baselines.data.errors import EmptySplitError
+
     source = embedded_scene_path() if embedded else source
     args.model.source_path = str(source)
     if args.sources.get("ModelParams.white_background", "default") == "default":
@@ -118,7 +130,10 @@ def build_trainer(argv: list[str]) -> Trainer:
     except EmptySplitError as err:
         raise EmptySplitError(f"{err}{_frame_needs(plugins, 0, prefix='; ')}") from None
     if len(scene.train_cameras) < max([1] + [p.min_train_frames()[0] for p in plugins]):
-        raise ValueError(f"{source}: {len(scene.train_cameras)} training frame(s){_frame_needs(plugins, len(scene.train_cameras))}")
+        held = (f"; --no-eval trains on the {len(scene.test_cameras)} held-out frame(s) too"
+                if scene.test_cameras else "")
+        raise ValueError(f"{source}: {len(scene.train_cameras)} training frame(s)"
+                         f"{_frame_needs(plugins, len(scene.train_cameras))}{held}")
     model_path = folder.path
     folder.commit()
     try:
@@ -140,6 +155,7 @@ def _check_model_folder(args, argv: list[str], source: Path, plugin_classes: lis
                         components: dict[str, frozenset[str]]) -> RunFolder:
     """Where the run goes and whether that folder may take it (run_folder.py); nothing is written."""
     start = args.run.start_checkpoint
+    check_typed_model_path(_flag_value(argv, "-m", "--model_path"))
     if args.model.model_path:
         model_path = Path(args.model.model_path)
     elif start and Path(start).is_file() and (Path(start).parent / "run.json").is_file():
@@ -156,9 +172,13 @@ def _check_model_folder(args, argv: list[str], source: Path, plugin_classes: lis
             outputs += list(getattr(load_plugin_class(name), "outputs", ()))
         except ValueError:
             pass  # a plugin not installed now: its files are kept
-    plan = check_run_folder(model_path, identity, overwrite=args.run.overwrite, start_checkpoint=start,
-                            plugin_outputs=outputs)
-    return RunFolder(plan, identity, ["train.py", *argv])
+    def check() -> FolderPlan:
+        return check_run_folder(model_path, identity, overwrite=args.run.overwrite, start_checkpoint=start,
+                                plugin_outputs=outputs)
+
+    folder = RunFolder(check(), identity, ["train.py", *argv])
+    folder.claim(check)  # the lock, then the same check again: no other run slips in between
+    return folder
 
 
 def _frame_needs(plugins: list[Plugin], have: int, prefix: str = ": ") -> str:
@@ -209,9 +229,21 @@ def train_from_argv(argv: list[str]) -> RunSummary:
     """The whole of train.py: build, train, evaluate."""
     logging.basicConfig(level=logging.INFO, format="[%(name)s] %(message)s")
     trainer = build_trainer(argv)
+    if trainer.opt.iterations == 0:  # (build_trainer alone may take 0: tests of an untrained model)
+        trainer.run_log.close()
+        trainer.run_folder.abandon()
+        raise ValueError("--iterations 0: the run would save no model (the fine stage is what render.py, "
+                         "export and the viewer load); give --iterations >= 1")
     if trainer.run.detect_anomaly:
         torch.autograd.set_detect_anomaly(True)
     folder = trainer.run_folder
+    try:
+        return _train_locked(trainer, folder, argv)
+    finally:
+        folder.release()  # the run is over (finished, failed or interrupted): the folder is free
+
+
+def _train_locked(trainer: Trainer, folder: RunFolder, argv: list[str]) -> RunSummary:
     try:
         summary = finish_run(trainer, trainer.train())
     except TrainingInterrupted as stop:
@@ -249,6 +281,7 @@ def require_run(path: str | os.PathLike) -> Path:
     path = Path(path)
     if not path.is_dir():
         raise ValueError(f"{path}: no such run folder (-m/--model_path)")
+    require_run_record(path)  # an unreadable run.json: no "latest" iteration can be trusted
     iteration = find_latest_iteration(path)
     if iteration is None or not (point_cloud_dir(path, iteration) / PLY_FILE).is_file():
         raise ValueError(f"{path} is not a trained run: no point_cloud/iteration_N/{PLY_FILE} (train.py -m {path} writes one)")
@@ -273,6 +306,7 @@ def load_run(argv: list[str]) -> LoadedRun:
     args = parse_render_args(argv, extra_groups=extra_groups)
     components = resolve_components(plugin_classes, args.run.disable, args.run.enable)
     model_path = Path(args.model.model_path)
+    require_run_record(model_path)  # an unreadable run.json: which folders the run saved is unknown
     iteration = args.render.iteration
     if iteration < 0:
         iteration = find_latest_iteration(model_path)
@@ -302,6 +336,15 @@ def render_from_argv(argv: list[str]) -> dict[str, Path]:
     """
     logging.basicConfig(level=logging.INFO, format="[%(name)s] %(message)s")
     loaded = load_run(argv)
+    lock = RunLock(loaded.trainer.ctx.model_path).acquire()  # no training or other render writes here meanwhile
+    try:
+        return _render_locked(loaded)
+    finally:
+        loaded.trainer.run_log.close()
+        lock.release()
+
+
+def _render_locked(loaded: LoadedRun) -> dict[str, Path]:
     trainer, args, iteration = loaded.trainer, loaded.args, loaded.iteration
     model_path, scene = trainer.ctx.model_path, trainer.ctx.scene
     model, background, backend = trainer.ctx.model, trainer.ctx.background, args.pipe.backend
@@ -322,5 +365,4 @@ def render_from_argv(argv: list[str]) -> dict[str, Path]:
         written["video"] = render_video(model, cams, "fine", background,
                                         model_path / "video" / method / "video_rgb.mp4", backend)
         print(f"[render] video -> {written['video']}")
-    trainer.run_log.close()
     return written

@@ -8,6 +8,7 @@ Layout (4DGS's, so either code base reads the other's output)::
         deformation_table.pth    [N] bool
         deformation_accum.pth    [N, 3] float
         extra_buffers.pth        ours: registered per-Gaussian buffers/parameters (optional on load)
+        manifest.json            ours: every file the saving run wrote here (plugins' too), size + sha256
     <model_path>/chkpnt_<stage>_<N>.pth            full training state (capture() + iteration)
 
 Every file is written to a temporary file in the same folder, flushed, fsync'ed and renamed
@@ -17,11 +18,16 @@ and renamed into place once complete, so `find_latest_iteration`, render.py and 
 see a half-written one. A failed write (full disk, read-only folder) raises ``SaveError`` (an
 ``OSError``) naming the file and the OS reason, after removing what it had written.
 Loading checks everything (shapes, SH degree, state-dict keys) before changing the model and
-raises ``ValueError`` naming the file.
+raises ``ValueError`` naming the file. A folder with a ``manifest.json`` must still hold every
+file listed there, byte for byte (`check_iteration_folder`): a missing ``extra_buffers.pth`` or a
+``deformation.pth`` copied in from another run is refused rather than rendered as if complete.
+Folders without one (4DGS's, older runs) are loaded as before.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import re
 import shutil
@@ -47,6 +53,8 @@ TABLE_FILE = "deformation_table.pth"
 ACCUM_FILE = "deformation_accum.pth"
 EXTRA_FILE = "extra_buffers.pth"
 EXTRA_FORMAT = "reflow-4dgs/extra-buffers"
+MANIFEST_FILE = "manifest.json"
+MANIFEST_FORMAT = "reflow-4dgs/iteration-files"
 TRAINING_STATE_FORMAT = "reflow-4dgs/training-state"
 FORMAT_VERSION = 1
 
@@ -70,6 +78,11 @@ class SaveError(OSError):
 
     def __str__(self) -> str:
         return f"cannot write {self.path}: {self.reason}"
+
+
+class FolderContentError(ValueError):
+    """A checkpoint file that is missing, unreadable or not the one its run saved (no config can fix
+    it, unlike a shape mismatch: callers add no "pass --configs" hint to these)."""
 
 
 def _os_cause(error: BaseException | None) -> OSError | None:
@@ -133,12 +146,13 @@ def atomic_write_ply(ply: PlyData, path: str | os.PathLike) -> Path:
 
 def _torch_load(path: Path, map_location: Any, trusted: bool = False) -> Any:
     if not path.is_file():
-        raise ValueError(f"{path}: file not found")
+        raise FolderContentError(f"{path}: file not found")
     try:
         with allow_numpy_scalars():  # 4DGS checkpoints hold numpy.float64 learning rates
             return torch.load(path, map_location=map_location, weights_only=not trusted)
     except Exception as err:  # torch raises many types for corrupt/foreign files
-        raise ValueError(f"{path}: cannot be read as a torch file of this project or 4DGS ({_load_reason(err)})") from None
+        raise FolderContentError(f"{path}: cannot be read as a torch file of this project or 4DGS "
+                                 f"({_load_reason(err)})") from None
 
 
 def _load_reason(err: Exception) -> str:
@@ -227,13 +241,13 @@ def read_gaussian_ply(path: str | os.PathLike, sh_degree: int) -> dict[str, Tens
     """
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"{path}: file not found")
+        raise FolderContentError(f"{path}: file not found")
     try:
         ply = PlyData.read(str(path))
         vertex = ply["vertex"]
         names = [p.name for p in vertex.properties]
     except Exception as err:
-        raise ValueError(f"{path}: not a readable Gaussian PLY ({type(err).__name__}: {err})") from None
+        raise FolderContentError(f"{path}: not a readable Gaussian PLY ({type(err).__name__}: {err})") from None
     count = vertex.count
 
     def columns(prefix: str, expected: int | None = None) -> np.ndarray:
@@ -295,6 +309,7 @@ def save_point_cloud_dir(model: GaussianModel, directory: str | os.PathLike,
         _write_point_cloud_files(model, staging)
         if before_publish is not None:
             before_publish(staging)
+        _write_manifest(staging)
         _publish_folder(staging, directory)
     except SaveError as err:  # name the folder being saved, not its temporary name
         shutil.rmtree(staging, ignore_errors=True)
@@ -304,6 +319,47 @@ def save_point_cloud_dir(model: GaussianModel, directory: str | os.PathLike,
         shutil.rmtree(staging, ignore_errors=True)
         raise
     return directory
+
+
+def _file_digest(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _write_manifest(directory: Path) -> None:
+    """Record every file of the (staged) iteration folder: relative path -> size and sha256."""
+    files = {str(p.relative_to(directory)): {"bytes": p.stat().st_size, "sha256": _file_digest(p)}
+             for p in sorted(directory.rglob("*")) if p.is_file() and p.name != MANIFEST_FILE}
+    text = json.dumps({"format": MANIFEST_FORMAT, "version": FORMAT_VERSION, "files": files}, indent=1) + "\n"
+    _atomic_write(directory / MANIFEST_FILE, lambda f: f.write(text.encode()))
+
+
+def check_iteration_folder(directory: str | os.PathLike) -> None:
+    """Refuse (ValueError, one line) an iteration folder that lacks or altered a file its saving run
+    recorded in ``manifest.json``; a folder without a manifest (4DGS's, older runs) passes."""
+    directory = Path(directory)
+    manifest_path = directory / MANIFEST_FILE
+    if not manifest_path.is_file():
+        return
+    try:
+        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+        files = manifest["files"] if manifest.get("format") == MANIFEST_FORMAT else None
+        if not isinstance(files, dict):
+            raise FolderContentError("not this project's manifest")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
+        raise FolderContentError(f"{manifest_path}: cannot be read ({err}); the folder's files cannot be checked") from None
+    missing = [name for name in files if not (directory / name).is_file()]
+    if missing:
+        raise FolderContentError(f"{directory} is incomplete: {', '.join(missing)} missing (the run that saved it wrote "
+                         f"{len(files)} files); copy the folder whole, or use another iteration")
+    for name, facts in files.items():
+        path = directory / name
+        if path.stat().st_size != facts.get("bytes") or _file_digest(path) != facts.get("sha256"):
+            raise FolderContentError(f"{path} is not the file the run saved there (its size or content hash differs from "
+                             f"{MANIFEST_FILE}): another run's copy? Put back the original, or use another iteration")
 
 
 def _publish_folder(staging: Path, directory: Path) -> None:
@@ -362,6 +418,7 @@ def load_point_cloud_dir(
     directory = Path(directory)
     if not directory.is_dir():
         raise ValueError(f"{directory}: checkpoint folder not found")
+    check_iteration_folder(directory)  # every file its run saved, unchanged
     device = torch.device(device) if device is not None else _module_device(model._deformation)
     rows = read_gaussian_ply(directory / PLY_FILE, model.max_sh_degree)
     count = rows["xyz"].shape[0]

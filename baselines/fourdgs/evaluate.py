@@ -230,5 +230,9 @@ def _read_json(path: Path) -> dict:
 
 def _write_json(path: Path, obj: dict) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=1, sort_keys=True))
-    tmp.replace(path)
+    try:
+        tmp.write_text(json.dumps(obj, indent=1, sort_keys=True))
+        tmp.replace(path)
+    except OSError as err:  # a full disk: name the file (the OS error alone does not), leave no temporary
+        tmp.unlink(missing_ok=True)
+        raise OSError(err.errno, f"cannot write {path}: {err.strerror or err}") from None

@@ -1,4 +1,4 @@
-"""Ctrl-C during training: finish the current iteration, save a checkpoint, stop with one line.
+"""Ctrl-C (or SIGTERM) during training: finish the current iteration, save a checkpoint, stop with one line.
 
     with deferred_interrupt() as stop:        # around the training loop (main thread only)
         ... one iteration ...
@@ -7,7 +7,9 @@
 A KeyboardInterrupt in the middle of an iteration (densification, an optimizer step) could leave
 the model half-updated, so the first SIGINT only sets a flag that the loop reads between
 iterations; a second SIGINT raises KeyboardInterrupt at once (the last checkpoint written then
-is the one to resume from). Outside the main thread nothing is installed.
+is the one to resume from). SIGTERM (``kill``, a job scheduler's stop) is handled the same way; it
+also replaces the crash handler pycolmap installs for it, which would dump a native stack instead.
+Outside the main thread nothing is installed.
 """
 from __future__ import annotations
 
@@ -20,14 +22,19 @@ from typing import Any, Iterator
 from baselines.run_folder import TrainingInterrupted  # noqa: F401  (raised by the trainer)
 
 
+HANDLED = (signal.SIGINT, signal.SIGTERM)
+NAMES = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM"}
+
+
 class StopFlag:
-    """Set by the first SIGINT (or `request()`, e.g. from a test)."""
+    """Set by the first SIGINT / SIGTERM (or `request()`, e.g. from a test); `signum` says which."""
 
     def __init__(self) -> None:
         self.requested = False
+        self.signum = int(signal.SIGINT)
 
-    def request(self) -> None:
-        self.requested = True
+    def request(self, signum: int = signal.SIGINT) -> None:
+        self.requested, self.signum = True, int(signum)
 
 
 @contextmanager
@@ -41,12 +48,14 @@ def deferred_interrupt() -> Iterator[StopFlag]:
     def handler(signum: int, frame: Any) -> None:
         if flag.requested:
             raise KeyboardInterrupt
-        flag.request()
-        print("[train] Ctrl-C: stopping after this iteration and saving a checkpoint "
-              "(Ctrl-C again to stop at once)", file=sys.stderr, flush=True)
+        flag.request(signum)
+        name = NAMES.get(signum, f"signal {signum}")
+        print(f"[train] {name}: stopping after this iteration and saving a checkpoint "
+              f"({name} again to stop at once)", file=sys.stderr, flush=True)
 
-    previous = signal.signal(signal.SIGINT, handler)
+    previous = {signum: signal.signal(signum, handler) for signum in HANDLED}
     try:
         yield flag
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for signum, old in previous.items():
+            signal.signal(signum, old)

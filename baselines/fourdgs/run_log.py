@@ -3,10 +3,18 @@
 `train_log.jsonl` gets one object per logged iteration ({"kind": "iter", stage, iteration, losses,
 psnr, num_gaussians, it_per_s, ...}) and one per event (stage start, test, save, checkpoint). Lines
 are flushed as written, so a killed run keeps its log.
+
+Each line is one ``write`` on an ``O_APPEND`` descriptor; a write that fails or is cut short (a
+full disk, a file-size limit) is undone by truncating the file back to where the line began, and
+raised as an ``OSError`` naming the file, so the log never ends in a torn line. `read_log` is the
+tolerant reader: a cut-off last line (a log from elsewhere, or a power cut) is skipped with a
+warning, a broken line in the middle is an error naming the file and line.
 """
 from __future__ import annotations
 
 import json
+import logging
+import os
 import sys
 import time
 from collections import defaultdict
@@ -91,7 +99,10 @@ class RunLog:
     def __init__(self, path: Path, quiet: bool = False) -> None:
         self.path = path
         self.quiet = quiet
-        self.file = open(path, "a", encoding="utf-8")
+        try:
+            self.fd: int | None = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        except OSError as err:
+            raise OSError(err.errno, err.strerror, str(path)) from None
         self.last_time = time.perf_counter()
         self.last_iteration = 0
 
@@ -100,8 +111,9 @@ class RunLog:
         return _Progress(total, initial, desc, self.quiet, **kwargs)
 
     def _write(self, record: dict[str, Any]) -> None:
-        self.file.write(json.dumps(record, default=str) + "\n")
-        self.file.flush()
+        if self.fd is None:
+            raise ValueError(f"{self.path}: the log was closed")
+        append_line(self.fd, json.dumps(record, default=str), self.path)
 
     def event(self, kind: str, **fields: Any) -> None:
         self._write({"kind": kind, "time": time.time(), **fields})
@@ -122,7 +134,45 @@ class RunLog:
         })
 
     def close(self) -> None:
-        self.file.close()
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+
+
+def append_line(fd: int, text: str, path: Path) -> None:
+    """Append ``text + "\\n"`` to the O_APPEND descriptor `fd` whole, or not at all (OSError naming `path`)."""
+    data = (text + "\n").encode("utf-8")
+    start = os.fstat(fd).st_size
+    try:
+        written = os.write(fd, data)
+        if written != len(data):  # a file-size limit or a full disk cut it short
+            raise OSError(27, "File too large or disk full: the line was cut short")
+    except OSError as err:
+        try:
+            os.ftruncate(fd, start)
+        except OSError:
+            pass
+        raise OSError(err.errno, err.strerror or str(err), str(path)) from None
+
+
+def read_log(path: str | os.PathLike) -> list[dict[str, Any]]:
+    """The records of a train_log.jsonl; a torn last line is skipped with a warning (ValueError naming
+    the file and line for a broken line elsewhere)."""
+    path = Path(path)
+    lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    records = []
+    for number, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            records.append(json.loads(line))
+        except ValueError:
+            if number == len(lines):
+                logging.getLogger("train").warning("%s: last line %d is cut off (a write that did not finish); "
+                                                   "skipped", path, number)
+                continue
+            raise ValueError(f"{path}: line {number} is not JSON") from None
+    return records
 
 
 def _short(value: Any) -> str:

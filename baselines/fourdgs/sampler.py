@@ -36,5 +36,10 @@ class CameraSampler:
         return {"generator": self.generator.get_state(), "stack": list(self.stack)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a saved state (its stack must index `items`: the trainer checks camera names first)."""
+        stack = [int(i) for i in state["stack"]]
+        bad = [i for i in stack if not 0 <= i < len(self.items)]
+        if bad:
+            raise ValueError(f"sampler state names item {bad[0]} but there are {len(self.items)} items")
         self.generator.set_state(state["generator"])
-        self.stack = list(state["stack"])
+        self.stack = stack

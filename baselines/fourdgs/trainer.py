@@ -30,6 +30,7 @@ from baselines.data import SceneInfo, initial_point_cloud
 from baselines.metrics import psnr, ssim, ssim_map
 
 from .checkpoint import (
+    FolderContentError,
     find_latest_iteration,
     load_point_cloud_dir,
     point_cloud_dir,
@@ -422,7 +423,7 @@ class Trainer:
         if not path.is_file():
             path = self.save_checkpoint()
         self.run_log.event("interrupted", stage=ctx.stage, iteration=ctx.iteration, checkpoint=str(path))
-        raise TrainingInterrupted(ctx.stage, ctx.iteration, path)
+        raise TrainingInterrupted(ctx.stage, ctx.iteration, path, self._stop.signum if self._stop else 2)
 
     def save_point_cloud(self) -> Path:
         """point_cloud/(coarse_)iteration_N, written whole (plugins' on_save files included) then renamed."""
@@ -441,6 +442,8 @@ class Trainer:
             "torch_rng": torch.get_rng_state(),
             "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
             "sampler": self.sampler.state_dict(),
+            # by name: a resume on another camera list is refused or re-mapped (check_resume_cameras)
+            "cameras": {"train": [c.image_name for c in self.train_cameras], "eval": bool(self.args.model.eval)},
             "plugins": self.hooks.state_dict(),
             "run": {"plugins": list(self.identity().plugins),
                     "components": {k: list(v) for k, v in self.identity().components.items()}},
@@ -481,6 +484,8 @@ class Trainer:
             check_upgrade_plugins(path, self.identity())
             try:
                 self.load_model_from(pc_dir)
+            except FolderContentError:
+                raise  # a missing or damaged file: no configuration fixes that
             except ValueError as err:
                 raise ValueError(f"{err}; {config_hint(path)}") from None
             # A 4DGS output is a trained model: continue in the fine stage from iteration 0.
@@ -491,7 +496,9 @@ class Trainer:
         if state.stage not in STAGES:
             raise ValueError(f"--start_checkpoint {spec}: cannot tell its stage; name it chkpnt_<coarse|fine>_<N>.pth")
         check_resume_identity(spec, state.extra, self.identity())
-        return {"stage": state.stage, "training_state": state, "path": path}
+        order = check_resume_cameras(spec, state.extra, [c.image_name for c in self.train_cameras],
+                                         bool(self.args.model.eval))
+        return {"stage": state.stage, "training_state": state, "path": path, "camera_order": order}
 
     def _restore(self, resume: dict[str, Any]) -> int:
         """Restore a training state into the freshly set-up stage; return its iteration."""
@@ -505,10 +512,52 @@ class Trainer:
         if extra.get("cuda_rng") is not None and torch.cuda.is_available():
             torch.cuda.set_rng_state_all(extra["cuda_rng"])
         if extra.get("sampler") is not None:
+            if resume.get("camera_order") is not None:  # same cameras listed in another order: the saved one
+                self.sampler.items = [self.train_cameras[i] for i in resume["camera_order"]]
             self.sampler.load_state_dict(extra["sampler"])
         self.hooks.load_state_dict(extra.get("plugins") or {})
         self.run_log.event("resumed", path=str(resume["path"]), stage=state.stage, iteration=state.iteration)
         return int(state.iteration)
+
+
+def check_resume_cameras(spec: str, extra: dict[str, Any] | None, names: list[str], evaluating: bool) -> list[int] | None:
+    """An exact resume trains on the same training cameras: compare the checkpoint's names with this
+    run's (`names`, in sampler order). When only the order differs, returns this run's index of each
+    checkpoint camera (the sampler then draws from the checkpoint's order: exact); None when nothing
+    needs re-mapping; raises ValueError naming what differs otherwise.
+
+    Checkpoints written before the names were recorded are checked by the sampler's indices only."""
+    extra = extra or {}
+    recorded = extra.get("cameras")
+    if not isinstance(recorded, dict) or not isinstance(recorded.get("train"), list):
+        stack = [int(i) for i in (extra.get("sampler") or {}).get("stack", [])]
+        if stack and max(stack) >= len(names):
+            raise ValueError(f"--start_checkpoint {spec} was trained on at least {max(stack) + 1} training cameras, "
+                             f"this dataset gives {len(names)}: resume on the dataset (and --eval setting) it was "
+                             "trained on")
+        return None
+    theirs = [str(n) for n in recorded["train"]]
+    if theirs == names:
+        return None
+    if sorted(theirs) == sorted(names) and len(set(names)) == len(names):
+        position = {name: i for i, name in enumerate(names)}
+        return [position[name] for name in theirs]
+    missing = [n for n in theirs if n not in set(names)]
+    added = [n for n in names if n not in set(theirs)]
+
+    def listed(items: list[str]) -> str:
+        return ", ".join(items[:4]) + (f" (+{len(items) - 4} more)" if len(items) > 4 else "")
+
+    parts = [f"{len(theirs)} training cameras in the checkpoint, {len(names)} here"]
+    if missing:
+        parts.append(f"not here: {listed(missing)}")
+    if added:
+        parts.append(f"new here: {listed(added)}")
+    hint = "resume on the dataset it was trained on"
+    saved_eval = recorded.get("eval")
+    if isinstance(saved_eval, bool) and saved_eval != evaluating:
+        hint = f"it was trained with {'--eval' if saved_eval else '--no-eval'}: give the same"
+    raise ValueError(f"--start_checkpoint {spec}: other training cameras ({'; '.join(parts)}); {hint}")
 
 
 def config_hint(start_checkpoint: Path) -> str:

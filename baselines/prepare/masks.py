@@ -26,6 +26,7 @@ from tqdm import tqdm
 
 from ..data.image_io import IMAGE_EXTENSIONS
 from ..data.motion_masks import MotionMaskOptions, masks_from_pair_errors
+from ..data.resolution import require_scaled_copy
 from ..data.optical_flow import pixel_grid
 from .errors import PrepareError
 
@@ -120,6 +121,10 @@ def read_mask_folder(folder: Path, count: int, size: tuple[int, int]) -> list[np
         mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if mask is None:
             raise PrepareError(f"cannot read mask {path}")
+        try:  # train.py's rule: another resolution is fine, another shape (transposed, cropped) is not
+            require_scaled_copy(path, "mask", (mask.shape[1], mask.shape[0]), size)
+        except ValueError as err:
+            raise PrepareError(str(err), "give masks of the frames' aspect ratio, or use --masks auto") from None
         masks.append(cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST) > 0)
     return masks
 
