@@ -38,7 +38,7 @@ FOURDGS_FIELDS = {
 OURS = {ModelParams: {"dataset_type", "force_dataset_points"}, PipelineParams: {"backend", "device", "time_outside"},
         OptimizationParams: {"seed", "densify_max_gaussians", "prune_min_gaussians",
                              "densify_grad_from", "stall_iterations"},
-        ModelHiddenParams: set()}
+        ModelHiddenParams: {"mlp_precision"}}
 
 
 @pytest.mark.parametrize("cls", list(FOURDGS_FIELDS), ids=lambda c: c.__name__)
