@@ -17,7 +17,7 @@ from typing import Any
 from .fields import param
 
 BACKENDS = ("auto", "cpu", "reference", "gsplat")
-DATASET_TYPES = ("auto", "nvidia", "dnerf", "hypernerf", "colmap", "synthetic")
+DATASET_TYPES = ("auto", "nvidia", "dnerf", "hypernerf", "colmap", "panoptic", "synthetic")
 KPLANES_KEYS = ("grid_dimensions", "input_coordinate_dim", "output_coordinate_dim", "resolution")
 
 _COMPAT_4DGS_UNUSED = "no effect in 4DGS either"
@@ -96,6 +96,11 @@ class ModelParams:
     force_dataset_points: bool = param(False, "start from the dataset's point file even when the "
                                               "training cameras barely see it (placeholder check)",
                                        ours=True)
+    train_cameras: str = param("", "panoptic: rig camera ids the monocular protocol cycles over, one per "
+                                   "timestamp, e.g. 12,18,19,24 (empty: the training camera nearest each "
+                                   "test camera)", ours=True)
+    test_every: int = param(10, "panoptic: with --eval the test cameras are test views at every "
+                                "test_every-th timestamp", ours=True, check=_check_positive)
 
 
 @dataclass

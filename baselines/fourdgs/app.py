@@ -114,6 +114,7 @@ def build_trainer(argv: list[str]) -> Trainer:
             source, dataset_type=args.model.dataset_type, images=args.model.images,
             resolution=args.model.resolution, eval=args.model.eval,
             white_background=args.model.white_background, llffhold=args.model.llffhold,
+            reader_options=reader_options(source, args.model),
         )
     except EmptySplitError as err:
         raise EmptySplitError(f"{err}{_frame_needs(plugins, 0, prefix='; ')}") from None
@@ -134,6 +135,13 @@ def build_trainer(argv: list[str]) -> Trainer:
         raise
     trainer.run_folder = folder
     return trainer
+
+
+def reader_options(source: Path | str, model) -> dict:
+    """The chosen reader's own options from ``ModelParams`` (panoptic: its camera cycle and test stride)."""
+    if dataset_family(Path(source), model.dataset_type) != "panoptic":
+        return {}
+    return {"train_cameras": model.train_cameras or None, "test_every": model.test_every}
 
 
 def _check_model_folder(args, argv: list[str], source: Path, plugin_classes: list[type[Plugin]],
@@ -286,6 +294,7 @@ def load_run(argv: list[str]) -> LoadedRun:
         args.model.source_path, dataset_type=args.model.dataset_type, images=args.model.images,
         resolution=args.model.resolution, eval=args.model.eval,
         white_background=args.model.white_background, llffhold=args.model.llffhold,
+        reader_options=reader_options(args.model.source_path, args.model),
     )
     plugins = [cls({g: args.extra[g] for g in cls.param_groups}, components[cls.name]) for cls in plugin_classes]
     trainer = Trainer(args, scene, plugins, model_path)

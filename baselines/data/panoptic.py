@@ -1,0 +1,308 @@
+"""CMU Panoptic captures in the Dynamic3DGaussians layout, read with the monocular protocol.
+
+    <scene>/train_meta.json, test_meta.json:
+        {"w": W, "h": H,
+         "k":      [T][C] 3x3 intrinsics (pixel centres at integers, OpenCV calibration),
+         "w2c":    [T][C] 4x4 world->camera, OpenCV axes,
+         "fn":     [T][C] image path relative to ims/, e.g. "1/000000.jpg",
+         "cam_id": [T][C] rig camera id}
+    <scene>/ims/<cam>/<frame>.jpg     every camera's video
+    <scene>/seg/<cam>/<frame>.png     optional person masks (255 = person), evaluation only
+    <scene>/points3D.ply              optional point cloud (none is stored for the basketball
+                                      capture: the initial cloud is then triangulated from the
+                                      training views with the known cameras, `initial_points.py`)
+
+Monocular protocol (as NVIDIA Dynamic Scenes): timestamp t trains on ONE view, camera
+`train_cameras[t % len(train_cameras)]` of train_meta.json, so the cameras cycle over a small set
+of neighbouring rig cameras. The default set (`train_cameras=None`) is, for each test camera of
+test_meta.json, the training camera whose centre is nearest to it (4 cameras for basketball:
+12, 18, 19, 24). With `eval`, every test camera is a test view at every `test_every`-th timestamp
+(0, k, 2k, ...); these are true novel views: no training image comes from those cameras.
+
+Masks: `seg/` gives people masks for the training cameras. They are the evaluation's dynamic
+masks (`extras["eval_mask"]`); training never sees them unless `train_masks=True` (then they are
+`Camera.mask`). The test cameras have no `seg/` in this layout: their evaluation mask is the
+people's visual hull, carved at that timestamp from the seg masks of ALL training-meta cameras
+(`visual_hull_masks`), so "PSNR inside the masks" scores the people on the held-out views.
+
+Times are t / (T - 1). Pixel centres move from integers to +0.5 (our convention, geometry.py).
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .errors import DatasetError
+from .geometry import orthonormal_rotation
+from .image_io import read_mask
+from .nvidia import find_point_file
+from .pointcloud import RawPoints
+from .scene_info import SceneInfo, assemble_scene
+from .validation import json_key, load_json, require_finite
+from .views import ViewSpec, load_views
+
+log = logging.getLogger(__name__)
+
+TRAIN_FILE, TEST_FILE = "train_meta.json", "test_meta.json"
+POINT_FILES = ("points3D.ply", "points3d.ply", "pointd3D.ply")
+PER_VIEW_KEYS = ("k", "w2c", "fn", "cam_id")
+
+
+class Meta:
+    """One validated meta file: intrinsics [T,C,3,3], w2c [T,C,4,4], file names [T][C], ids [T][C]."""
+
+    def __init__(self, path: Path):
+        data = load_json(path)
+        self.path = path
+        self.width = _positive_int(json_key(data, "w", path), "w", path)
+        self.height = _positive_int(json_key(data, "h", path), "h", path)
+        lists = {key: json_key(data, key, path) for key in PER_VIEW_KEYS}
+        for key, value in lists.items():
+            if not isinstance(value, list) or not value or not all(isinstance(row, list) for row in value):
+                raise DatasetError(f"{path}: '{key}' must be a non-empty list (timestamps) of lists (cameras)")
+        steps = {key: len(value) for key, value in lists.items()}
+        if len(set(steps.values())) != 1:
+            raise DatasetError(f"{path}: per-timestamp lists differ in length: {steps}")
+        self.num_steps = steps["fn"]
+        self.num_cameras = len(lists["fn"][0])
+        for key, value in lists.items():
+            for t, row in enumerate(value):
+                if len(row) != self.num_cameras:
+                    raise DatasetError(f"{path}: '{key}'[{t}] has {len(row)} cameras, 'fn'[0] has "
+                                       f"{self.num_cameras}")
+        self.K = _array(lists["k"], (3, 3), "k", path)
+        self.w2c = _array(lists["w2c"], (4, 4), "w2c", path)
+        for t in range(self.num_steps):
+            for c in range(self.num_cameras):
+                orthonormal_rotation(self.w2c[t, c, :3, :3], f"{path} w2c[{t}][{c}]")
+                if self.K[t, c, 0, 0] <= 0 or self.K[t, c, 1, 1] <= 0:
+                    raise DatasetError(f"{path}: k[{t}][{c}] has a non-positive focal length")
+        self.fn = [[str(name) for name in row] for row in lists["fn"]]
+        try:
+            self.cam_id = [[int(cid) for cid in row] for row in lists["cam_id"]]
+        except (TypeError, ValueError) as exc:
+            raise DatasetError(f"{path}: 'cam_id' holds a non-integer: {exc}") from None
+        if len(set(self.cam_id[0])) != self.num_cameras:
+            raise DatasetError(f"{path}: 'cam_id'[0] repeats a camera: {self.cam_id[0]}")
+
+    def column(self, camera_id: int) -> int:
+        """The camera's position in the per-timestamp lists (it is the same at every timestamp)."""
+        return self.cam_id[0].index(camera_id)
+
+    def centres(self) -> np.ndarray:
+        """[C,3] camera centres at the first timestamp."""
+        R, t = self.w2c[0, :, :3, :3], self.w2c[0, :, :3, 3]
+        return -np.einsum("cji,cj->ci", R, t)
+
+
+def _positive_int(value, key: str, path: Path) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 1 or int(value) != value:
+        raise DatasetError(f"{path}: '{key}' must be a positive integer, got {value!r}")
+    return int(value)
+
+
+def _array(value: list, shape: tuple[int, int], key: str, path: Path) -> np.ndarray:
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DatasetError(f"{path}: '{key}' is not a [T][C]{list(shape)} numeric array") from None
+    if array.shape[2:] != shape:
+        raise DatasetError(f"{path}: '{key}' entries have shape {array.shape[2:]}, expected {shape}")
+    return require_finite(array, path, f"'{key}' value")
+
+
+def default_train_cameras(train: Meta, test: Meta) -> list[int]:
+    """For each test camera the training camera nearest to it (sorted ids, no repeats)."""
+    train_centres, test_centres = train.centres(), test.centres()
+    nearest = np.linalg.norm(test_centres[:, None] - train_centres[None], axis=-1).argmin(axis=1)
+    return sorted({train.cam_id[0][i] for i in nearest})
+
+
+def _resolve_cameras(train: Meta, chosen: Sequence[int] | str | None, test: Meta | None) -> list[int]:
+    if chosen is None or chosen == "" or chosen == []:
+        if test is None:
+            raise DatasetError(f"{train.path.parent / TEST_FILE} is needed to choose the default training cameras "
+                               "(or name them: --train_cameras 1,2,3)")
+        return default_train_cameras(train, test)
+    if isinstance(chosen, str):
+        try:
+            chosen = [int(part) for part in chosen.split(",") if part.strip()]
+        except ValueError:
+            raise DatasetError(f"train_cameras={chosen!r}: expected camera ids like 1,2,3") from None
+    cameras = [int(c) for c in chosen]
+    unknown = [c for c in cameras if c not in train.cam_id[0]]
+    if unknown or not cameras:
+        raise DatasetError(f"train_cameras {unknown or cameras} are not cameras of {train.path} "
+                           f"(it has {train.cam_id[0]})")
+    return cameras
+
+
+def visual_hull_masks(seg_masks: Sequence[np.ndarray], K: np.ndarray, w2c: np.ndarray, targets_K: np.ndarray,
+                      targets_w2c: np.ndarray, size: tuple[int, int], box: np.ndarray, voxels: int = 96,
+                      min_views: int = 3, slack: int = 1) -> np.ndarray:
+    """Masks of the silhouettes' visual hull seen from target cameras.
+
+    Args:
+        seg_masks: C [H,W] bool silhouettes, one per carving camera.
+        K, w2c: [C,3,3] / [C,4,4] carving cameras (pixel centres at +0.5).
+        targets_K, targets_w2c: [V,3,3] / [V,4,4] cameras to render the hull into.
+        size: (width, height) of every image.
+        box: [2,3] world box carved (min, max).
+        voxels: grid cells along the box's longest side.
+        min_views: a voxel must project inside at least this many carving images.
+        slack: carving cameras whose silhouette may miss a voxel (segmentation holes).
+    Returns: [V,H,W] bool masks (the hull's voxels splatted at their projected size).
+    """
+    width, height = size
+    extent = box[1] - box[0]
+    step = float(extent.max()) / voxels
+    axes = [np.arange(box[0][i] + step / 2, box[1][i], step) for i in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    inside = np.zeros(len(grid), np.int32)
+    seen = np.zeros(len(grid), np.int32)
+    for mask, k, v in zip(seg_masks, K, w2c):
+        x, y, ok = _project(grid, k, v, width, height)
+        seen += ok
+        inside[ok] += mask[y[ok], x[ok]]
+    hull = grid[(seen >= min_views) & (inside >= seen - slack)]
+    out = np.zeros((len(targets_K), height, width), bool)
+    for i, (k, v) in enumerate(zip(targets_K, targets_w2c)):
+        cam = hull @ v[:3, :3].T + v[:3, 3]
+        x, y, ok = _project(hull, k, v, width, height)
+        radius = np.ceil(k[0, 0] * step / np.maximum(cam[:, 2], 1e-6) / 2).astype(int)
+        for r in np.unique(radius[ok]):
+            pick = ok & (radius == r)
+            layer = np.zeros((height, width), np.uint8)
+            layer[y[pick], x[pick]] = 1
+            out[i] |= _dilate(layer, int(r)) > 0
+    return out
+
+
+def _project(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, width: int, height: int):
+    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+    z = cam[:, 2]
+    safe = np.where(z > 1e-6, z, 1.0)
+    x = np.floor(K[0, 0] * cam[:, 0] / safe + K[0, 1] * cam[:, 1] / safe + K[0, 2]).astype(np.int64)
+    y = np.floor(K[1, 1] * cam[:, 1] / safe + K[1, 2]).astype(np.int64)
+    ok = (z > 1e-6) & (x >= 0) & (x < width) & (y >= 0) & (y < height)
+    return np.clip(x, 0, width - 1), np.clip(y, 0, height - 1), ok
+
+
+def _dilate(layer: np.ndarray, radius: int) -> np.ndarray:
+    import cv2
+
+    if radius <= 0:
+        return layer
+    return cv2.dilate(layer, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1)))
+
+
+def _hull_box(meta: Meta, points: np.ndarray | None) -> np.ndarray:
+    """[2,3] box carved for the hull: the point cloud's when given, else the cameras' (they ring the
+    scene) grown by a quarter of its size on every side, since the floor lies below the lowest camera."""
+    if points is not None and len(points) >= 8:
+        return np.stack([points.min(axis=0), points.max(axis=0)])
+    centres = meta.centres()
+    low, high = centres.min(axis=0), centres.max(axis=0)
+    margin = 0.25 * (high - low)
+    return np.stack([low - margin, high + margin])
+
+
+def read_panoptic(source_path: Path | str, images: str = "ims", resolution: int | float = -1,
+                  eval: bool = False, white_background: bool = False, llffhold: int = 8,
+                  train_cameras: Sequence[int] | str | None = None, test_every: int = 10,
+                  train_masks: bool = False, hull_voxels: int = 96) -> SceneInfo:
+    """Read a Dynamic3DGaussians-layout capture with the monocular protocol (module docstring).
+
+    Args:
+        images: unused (the layout's image folder is ims/); llffhold unused (see test_every).
+        train_cameras: rig camera ids cycled over the timestamps (list or "1,2,3"); None = default.
+        test_every: with `eval`, test views at timestamps 0, k, 2k, ... (k = test_every).
+        train_masks: give training the seg/ masks as `Camera.mask` (by default evaluation only).
+        hull_voxels: grid resolution of the test cameras' visual-hull masks.
+    """
+    source = Path(source_path)
+    if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 1:
+        raise DatasetError(f"test_every={test_every!r}: must be a positive integer")
+    train_meta = Meta(source / TRAIN_FILE)
+    test_meta = Meta(source / TEST_FILE) if (eval or (source / TEST_FILE).is_file()) else None
+    if test_meta is not None:
+        for key in ("width", "height", "num_steps"):
+            if getattr(test_meta, key) != getattr(train_meta, key):
+                raise DatasetError(f"{test_meta.path}: {key} {getattr(test_meta, key)} differs from "
+                                   f"{train_meta.path}'s {getattr(train_meta, key)}")
+    cycle = _resolve_cameras(train_meta, train_cameras, test_meta)
+    steps = train_meta.num_steps
+    point_file = find_point_file(source, POINT_FILES)
+    raw_points = None if point_file is None else RawPoints.read(point_file)
+    pixel_shift = np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])  # integer pixel centres -> +0.5
+    seg_root = source / "seg"
+
+    def spec(meta: Meta, t: int, column: int, with_seg: bool) -> ViewSpec:
+        name = meta.fn[t][column]
+        seg = seg_root / Path(name).with_suffix(".png") if with_seg else None
+        camera_id = meta.cam_id[t][column]
+        return ViewSpec(image_path=source / "ims" / name, image_name=f"cam{camera_id:02d}_{t:06d}",
+                        K=meta.K[t, column] + pixel_shift, calibrated_size=(meta.width, meta.height),
+                        viewmat=meta.w2c[t, column], time=t / (steps - 1) if steps > 1 else 0.0,
+                        frame_index=t, camera_id=camera_id,
+                        mask_path=seg if train_masks else None, eval_mask_path=None if train_masks else seg)
+
+    has_seg = seg_root.is_dir()
+    if train_masks and not has_seg:
+        raise DatasetError(f"train_masks=True but {seg_root} does not exist")
+    specs = [spec(train_meta, t, train_meta.column(cycle[t % len(cycle)]), has_seg) for t in range(steps)]
+    test_steps = list(range(0, steps, test_every)) if eval else []
+    if eval:
+        specs += [spec(test_meta, t, c, False) for t in test_steps for c in range(test_meta.num_cameras)]
+    background = (1.0, 1.0, 1.0) if white_background else (0.0, 0.0, 0.0)
+    cameras = load_views(specs, resolution, background, same_size="all")
+    train = list(range(steps))
+    test = list(range(steps, len(cameras)))
+    if eval and has_seg:
+        _add_hull_masks(cameras[steps:], train_meta, test_meta, test_steps, source, raw_points, hull_voxels)
+    point_cloud = None if raw_points is None else raw_points.to_point_cloud([cameras[i] for i in train])
+    return assemble_scene(cameras, train, test, dataset_type="panoptic", source_path=source, num_frames=steps,
+                          point_cloud=point_cloud,
+                          metadata={"train_cameras": cycle, "test_cameras": test_meta.cam_id[0] if test_meta else [],
+                                    "test_every": test_every, "test_timestamps": test_steps,
+                                    "train_masks": train_masks, "test_masks": "visual hull of seg/" if eval and has_seg else None,
+                                    "point_file": str(point_file) if point_file else None})
+
+
+def _add_hull_masks(test_cameras: list, train_meta: Meta, test_meta: Meta, test_steps: list[int], source: Path,
+                    raw_points: RawPoints | None, voxels: int) -> None:
+    """Set extras["eval_mask"] of the test views (test order: timestamp-major) from the seg/ hull."""
+    import cv2
+    import torch
+
+    width, height = test_cameras[0].width, test_cameras[0].height
+    box = _hull_box(train_meta, None if raw_points is None else raw_points.points)
+    shift = np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
+    per_step = test_meta.num_cameras
+    for n, t in enumerate(test_steps):
+        segs, Ks, w2cs = [], [], []
+        for c in range(train_meta.num_cameras):
+            path = source / "seg" / Path(train_meta.fn[t][c]).with_suffix(".png")
+            if not path.is_file():
+                continue
+            mask = read_mask(path)
+            if mask.shape != (train_meta.height, train_meta.width):
+                raise DatasetError(f"{path} is {mask.shape[1]}x{mask.shape[0]}, expected "
+                                   f"{train_meta.width}x{train_meta.height}")
+            segs.append(mask > 0.5)
+            Ks.append(train_meta.K[t, c] + shift)
+            w2cs.append(train_meta.w2c[t, c])
+        if len(segs) < 3:
+            raise DatasetError(f"{source / 'seg'}: only {len(segs)} training cameras have masks at timestamp {t}; "
+                               "the test views' hull needs 3 or more")
+        hull = visual_hull_masks(segs, np.stack(Ks), np.stack(w2cs),
+                                 np.stack([test_meta.K[t, c] + shift for c in range(per_step)]),
+                                 test_meta.w2c[t], (train_meta.width, train_meta.height), box, voxels=voxels)
+        for c in range(per_step):
+            mask = hull[c].astype(np.uint8)
+            if (width, height) != (train_meta.width, train_meta.height):  # carved at the stored size
+                mask = cv2.resize(mask, (width, height), interpolation=cv2.INTER_NEAREST)
+            test_cameras[n * per_step + c].extras["eval_mask"] = torch.from_numpy(mask.astype(np.float32))
