@@ -8,9 +8,11 @@
          "cam_id": [T][C] rig camera id}
     <scene>/ims/<cam>/<frame>.jpg     every camera's video
     <scene>/seg/<cam>/<frame>.png     optional person masks (255 = person), evaluation only
-    <scene>/points3D.ply              optional point cloud (none is stored for the basketball
-                                      capture: the initial cloud is then triangulated from the
-                                      training views with the known cameras, `initial_points.py`)
+    <scene>/points3D.ply              optional point cloud; none is stored for the basketball
+                                      capture, and `triangulate_first_timestep` (run by the
+                                      benchmark's --setup) writes one from all train_meta cameras
+                                      at timestamp 0 (without it, `initial_points.py` triangulates
+                                      from the training views)
 
 Monocular protocol (as NVIDIA Dynamic Scenes): timestamp t trains on ONE view, camera
 `train_cameras[t % len(train_cameras)]` of train_meta.json, so the cameras cycle over a small set
@@ -199,15 +201,52 @@ def _dilate(layer: np.ndarray, radius: int) -> np.ndarray:
     return cv2.dilate(layer, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1)))
 
 
-def _hull_box(meta: Meta, points: np.ndarray | None) -> np.ndarray:
-    """[2,3] box carved for the hull: the point cloud's when given, else the cameras' (they ring the
-    scene) grown by a quarter of its size on every side, since the floor lies below the lowest camera."""
-    if points is not None and len(points) >= 8:
-        return np.stack([points.min(axis=0), points.max(axis=0)])
+def _hull_box(meta: Meta) -> np.ndarray:
+    """[2,3] box carved for the hull: the cameras' box (they ring the scene) grown on every side by a
+    quarter of its largest size, since the floor lies below the lowest camera."""
     centres = meta.centres()
     low, high = centres.min(axis=0), centres.max(axis=0)
-    margin = 0.25 * (high - low)
+    margin = 0.25 * float((high - low).max())
     return np.stack([low - margin, high + margin])
+
+
+def triangulate_first_timestep(source_path: Path | str, out_file: Path | str, seed: int = 0,
+                               num_threads: int = 2) -> int:
+    """Write `out_file` (PLY: x, y, z, red, green, blue) with static points triangulated by pycolmap
+    from every train_meta.json camera at timestamp 0, poses and intrinsics fixed, features masked
+    out inside seg/ (the people). Returns the number of points; `DatasetError` under 100.
+
+    Uses cameras the monocular protocol does not train on: the static background only, as the
+    dataset's own point file would be (Dynamic3DGaussians ships one built from all cameras).
+    """
+    from plyfile import PlyData, PlyElement
+
+    from .cameras import Camera
+    from .image_io import read_rgba
+    from .triangulation import triangulate_static_points
+
+    source = Path(source_path)
+    meta = Meta(source / TRAIN_FILE)
+    shift = np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
+    cameras = []
+    for c in range(meta.num_cameras):
+        rgb, _ = read_rgba(source / "ims" / meta.fn[0][c])
+        seg = source / "seg" / Path(meta.fn[0][c]).with_suffix(".png")
+        cameras.append(Camera(uid=c, image_name=f"cam{meta.cam_id[0][c]:02d}", width=rgb.shape[1], height=rgb.shape[0],
+                              K=meta.K[0, c] + shift, viewmat=meta.w2c[0, c], time=0.0, image=rgb,
+                              camera_id=meta.cam_id[0][c], mask=read_mask(seg) if seg.is_file() else None))
+    result = triangulate_static_points(cameras, max_images=len(cameras), exhaustive_up_to=len(cameras),
+                                       seed=seed, num_threads=num_threads)
+    if len(result) < 100:
+        raise DatasetError(f"{source}: only {len(result)} points triangulated from {len(cameras)} cameras at timestamp 0")
+    vertex = np.empty(len(result), dtype=[(k, "f4") for k in "xyz"] + [(k, "u1") for k in ("red", "green", "blue")])
+    for i, k in enumerate("xyz"):
+        vertex[k] = result.points[:, i]
+    colours = np.clip(np.round(result.colors * 255), 0, 255).astype(np.uint8)
+    for i, k in enumerate(("red", "green", "blue")):
+        vertex[k] = colours[:, i]
+    PlyData([PlyElement.describe(vertex, "vertex")]).write(str(out_file))
+    return len(result)
 
 
 def read_panoptic(source_path: Path | str, images: str = "ims", resolution: int | float = -1,
@@ -262,7 +301,7 @@ def read_panoptic(source_path: Path | str, images: str = "ims", resolution: int 
     train = list(range(steps))
     test = list(range(steps, len(cameras)))
     if eval and has_seg:
-        _add_hull_masks(cameras[steps:], train_meta, test_meta, test_steps, source, raw_points, hull_voxels)
+        _add_hull_masks(cameras[steps:], train_meta, test_meta, test_steps, source, hull_voxels)
     point_cloud = None if raw_points is None else raw_points.to_point_cloud([cameras[i] for i in train])
     return assemble_scene(cameras, train, test, dataset_type="panoptic", source_path=source, num_frames=steps,
                           point_cloud=point_cloud,
@@ -273,13 +312,13 @@ def read_panoptic(source_path: Path | str, images: str = "ims", resolution: int 
 
 
 def _add_hull_masks(test_cameras: list, train_meta: Meta, test_meta: Meta, test_steps: list[int], source: Path,
-                    raw_points: RawPoints | None, voxels: int) -> None:
+                    voxels: int) -> None:
     """Set extras["eval_mask"] of the test views (test order: timestamp-major) from the seg/ hull."""
     import cv2
     import torch
 
     width, height = test_cameras[0].width, test_cameras[0].height
-    box = _hull_box(train_meta, None if raw_points is None else raw_points.points)
+    box = _hull_box(train_meta)
     shift = np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
     per_step = test_meta.num_cameras
     for n, t in enumerate(test_steps):
