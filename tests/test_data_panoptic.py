@@ -107,7 +107,7 @@ def test_training_cycles_one_camera_per_timestamp(scene):
     assert [c.camera_id for c in scene.train_cameras] == [2, 3, 4, 2, 3, 4]
     assert [c.frame_index for c in scene.train_cameras] == list(range(STEPS))
     assert [c.time for c in scene.train_cameras] == pytest.approx([t / (STEPS - 1) for t in range(STEPS)])
-    assert scene.metadata["train_cameras"] == [2, 3, 4]
+    assert scene.metadata["protocol"]["train_cameras"] == [2, 3, 4]
 
 
 def test_cameras_in_our_convention(scene):
@@ -129,7 +129,7 @@ def test_test_split_is_held_out_cameras_every_kth_timestamp(scene):
     got = [(c.frame_index, c.camera_id) for c in scene.test_cameras]
     assert got == [(t, c) for t in (0, 2, 4) for c in TEST_IDS]
     assert not {c.camera_id for c in scene.test_cameras} & {c.camera_id for c in scene.train_cameras}
-    assert scene.metadata["test_timestamps"] == [0, 2, 4]
+    assert scene.metadata["protocol"]["test_timestamps"] == [0, 2, 4]
 
 
 def test_seg_masks_are_for_evaluation_only(scene, capture):
@@ -156,7 +156,7 @@ def test_default_cameras_are_the_nearest_to_each_test_camera(capture):
     train, test = Meta(capture / "train_meta.json"), Meta(capture / "test_meta.json")
     # test camera 0 sits at 10 degrees: nearest ring camera is 1 (0 deg); 9 at 190 degrees: 5 (180 deg)
     assert default_train_cameras(train, test) == [1, 5]
-    assert load_scene(capture, eval=True).metadata["train_cameras"] == [1, 5]
+    assert load_scene(capture, eval=True).metadata["protocol"]["train_cameras"] == [1, 5]
 
 
 def _edited(src: Path, dst: Path, name: str, edit) -> Path:
@@ -202,12 +202,11 @@ def test_bad_options_are_named(capture):
         load_scene(capture, reader_options={"test_every": 0})
 
 
-def test_train_flags_reach_the_reader(capture):
-    from arguments.params import ModelParams
-    from baselines.fourdgs.app import reader_options
+def test_train_flags_reach_the_reader_and_the_run_records_the_protocol(capture, tmp_path):
+    from baselines.fourdgs.app import REPO_ROOT, build_trainer
 
-    model = ModelParams()
-    model.train_cameras, model.test_every = "3,4", 3
-    assert reader_options(capture, model) == {"train_cameras": "3,4", "test_every": 3}
-    model.train_cameras = ""
-    assert reader_options(capture, model)["train_cameras"] is None
+    trainer = build_trainer(["-s", str(capture), "-m", str(tmp_path / "run"), "--quiet", "--train_cameras", "3,4",
+                             "--test_every", "3", "--configs", str(REPO_ROOT / "arguments/synthetic/default.py")])
+    assert [c.camera_id for c in trainer.train_cameras] == [3, 4, 3, 4, 3, 4]
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert saved["_protocol"]["train_cameras"] == [3, 4] and saved["_protocol"]["test_timestamps"] == [0, 3]

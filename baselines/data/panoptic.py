@@ -306,12 +306,15 @@ def read_panoptic(source_path: Path | str, images: str = "ims", resolution: int 
     if eval and has_seg:
         _add_hull_masks(cameras[steps:], train_meta, test_meta, test_steps, source, hull_voxels)
     point_cloud = None if raw_points is None else raw_points.to_point_cloud([cameras[i] for i in train])
+    # what the run trained and tested on (train.py records it in config.json as "_protocol")
+    protocol = {"train_cameras": cycle, "test_cameras": test_meta.cam_id[0] if eval else [], "test_every": test_every,
+                "test_timestamps": test_steps, "train_masks": train_masks,
+                "test_masks": "visual hull of seg/" if eval and has_seg else None}
+    log.info("panoptic monocular protocol: timestamp t trains on camera %s[t %% %d]; test cameras %s at %d timestamps",
+             cycle, len(cycle), protocol["test_cameras"], len(test_steps))
     return assemble_scene(cameras, train, test, dataset_type="panoptic", source_path=source, num_frames=steps,
                           point_cloud=point_cloud,
-                          metadata={"train_cameras": cycle, "test_cameras": test_meta.cam_id[0] if test_meta else [],
-                                    "test_every": test_every, "test_timestamps": test_steps,
-                                    "train_masks": train_masks, "test_masks": "visual hull of seg/" if eval and has_seg else None,
-                                    "point_file": str(point_file) if point_file else None})
+                          metadata={"protocol": protocol, "point_file": str(point_file) if point_file else None})
 
 
 def _add_hull_masks(test_cameras: list, train_meta: Meta, test_meta: Meta, test_steps: list[int], source: Path,

@@ -125,6 +125,7 @@ def build_trainer(argv: list[str]) -> Trainer:
     try:
         write_cfg_args(model_path, args, {"_components": {name: sorted(active) for name, active in components.items()},
                                            "_dataset_layout": scene.metadata.get("layout_detection"),
+                                           "_protocol": scene.metadata.get("protocol"),
                                            "_default_config": decision.as_dict() if decision else None})
         for plugin in plugins:
             log.info("plugin %s: components %s", plugin.name, sorted(plugin.enabled) or "none")
