@@ -97,8 +97,10 @@ class ModelParams:
                                               "training cameras barely see it (placeholder check)",
                                        ours=True)
     train_cameras: str = param("", "panoptic: rig camera ids the monocular protocol cycles over, one per "
-                                   "timestamp, e.g. 12,18,19,24 (empty: the training camera nearest each "
-                                   "test camera)", ours=True)
+                                   "timestamp, e.g. 21,29,24 (empty: the 5 training cameras nearest the "
+                                   "first test camera)", ours=True)
+    test_cameras: str = param("", "panoptic: test_meta.json camera ids held out with --eval, e.g. 0,10 "
+                                  "(empty: the first test camera)", ours=True)
     test_every: int = param(10, "panoptic: with --eval the test cameras are test views at every "
                                 "test_every-th timestamp", ours=True, check=_check_positive)
 

@@ -20,8 +20,9 @@ a local clone (a plain or a bare clone) and writes `DATA/<name>` (default `data/
 
 Held-out protocol (`--eval`) is the family's: NVIDIA's monocular protocol holds out every 8th
 frame (`llffhold`); prepared clips use the same LLFF rule on the registered frames; panoptic
-trains on one camera per timestamp cycling over the training cameras nearest the test cameras
-and tests on the held-out test cameras at every 10th timestamp (`--train_cameras`, `--test_every`).
+trains on one camera per timestamp cycling over the 5 training cameras nearest the first test
+camera (17, 29, 13, 21, 24 for basketball) and tests on that held-out camera (0) at every 10th
+timestamp (`--train_cameras`, `--test_cameras`, `--test_every`).
 """
 from __future__ import annotations
 

@@ -12,7 +12,7 @@ The captures and their sources (repository + commit) are the registry in
 training with one error that prints how to fetch it. Each (capture, method) is an ordinary
 `train.py` run in `OUT/<capture>/<method>` with the family's default config (no `--configs`:
 `arguments/nvidia/*` for NVIDIA, `arguments/hypernerf/*` for prepared clips and panoptic), `--eval`
-(the family's hold-out: every 8th frame; panoptic: its test cameras every 10th timestamp), the same schedule and `--seed` for both methods; ReFlow runs with its defaults
+(the family's hold-out: every 8th frame; panoptic: its test camera every 10th timestamp), the same schedule and `--seed` for both methods; ReFlow runs with its defaults
 (`--plugin reflow`); `--methods ...,reflow_flow_provider` adds a diagnosis row, ReFlow with its
 canonical space built from triangulated optical flow instead of the dataset's `disp/`. A run is done when `real_done.json` exists (written after train.py
 succeeded, with the command and the code's commit); a folder without it is a torn run and is

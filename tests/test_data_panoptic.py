@@ -96,7 +96,8 @@ def capture(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def scene(capture):
-    return load_scene(capture, eval=True, reader_options={"train_cameras": [2, 3, 4], "test_every": 2})
+    return load_scene(capture, eval=True, reader_options={"train_cameras": [2, 3, 4], "test_cameras": "0,9",
+                                                          "test_every": 2})
 
 
 def test_detected_from_its_files(capture):
@@ -152,11 +153,18 @@ def test_test_views_get_the_visual_hull_of_the_seg_masks(scene):
         assert (hull & truth).sum() / truth.sum() > 0.9  # the ball is covered
 
 
-def test_default_cameras_are_the_nearest_to_each_test_camera(capture):
+def test_default_is_a_sweep_of_the_cameras_nearest_the_first_test_camera(capture):
     train, test = Meta(capture / "train_meta.json"), Meta(capture / "test_meta.json")
-    # test camera 0 sits at 10 degrees: nearest ring camera is 1 (0 deg); 9 at 190 degrees: 5 (180 deg)
-    assert default_train_cameras(train, test) == [1, 5]
-    assert load_scene(capture, eval=True).metadata["protocol"]["train_cameras"] == [1, 5]
+    centres = {c: np.linalg.inv(ring_camera(ANGLES[c], -0.8 if c % 2 else 0.8))[:3, 3] for c in TRAIN_IDS + TEST_IDS}
+    nearest = sorted(TRAIN_IDS, key=lambda c: np.linalg.norm(centres[c] - centres[0]))[:5]
+    chosen = default_train_cameras(train, test)
+    assert sorted(chosen) == sorted(nearest)
+    # a sweep around the ring (angles relative to test camera 0 at 10 degrees), one way or the other
+    angles = [(ANGLES[c] - 10.0 + 180.0) % 360.0 - 180.0 for c in chosen]
+    assert angles == sorted(angles) or angles == sorted(angles, reverse=True)
+    info = load_scene(capture, eval=True)
+    assert info.metadata["protocol"]["train_cameras"] == chosen
+    assert {c.camera_id for c in info.test_cameras} == {0}
 
 
 def _edited(src: Path, dst: Path, name: str, edit) -> Path:
@@ -198,6 +206,8 @@ def test_missing_meta_file_is_named(capture, tmp_path):
 def test_bad_options_are_named(capture):
     with pytest.raises(DatasetError, match="train_cameras \\[42\\]"):
         load_scene(capture, reader_options={"train_cameras": "1,42"})
+    with pytest.raises(DatasetError, match="test_cameras \\[3\\] are not cameras of .*test_meta.json"):
+        load_scene(capture, eval=True, reader_options={"test_cameras": "3"})
     with pytest.raises(DatasetError, match="test_every=0"):
         load_scene(capture, reader_options={"test_every": 0})
 
@@ -206,7 +216,9 @@ def test_train_flags_reach_the_reader_and_the_run_records_the_protocol(capture, 
     from baselines.fourdgs.app import REPO_ROOT, build_trainer
 
     trainer = build_trainer(["-s", str(capture), "-m", str(tmp_path / "run"), "--quiet", "--train_cameras", "3,4",
-                             "--test_every", "3", "--configs", str(REPO_ROOT / "arguments/synthetic/default.py")])
+                             "--test_cameras", "9", "--test_every", "3", "--configs", str(REPO_ROOT / "arguments/synthetic/default.py")])
     assert [c.camera_id for c in trainer.train_cameras] == [3, 4, 3, 4, 3, 4]
+    assert [(c.camera_id, c.frame_index) for c in trainer.test_cameras] == [(9, 0), (9, 3)]
     saved = json.loads((tmp_path / "run" / "config.json").read_text())
     assert saved["_protocol"]["train_cameras"] == [3, 4] and saved["_protocol"]["test_timestamps"] == [0, 3]
+    assert saved["_protocol"]["test_cameras"] == [9]

@@ -16,9 +16,12 @@
 
 Monocular protocol (as NVIDIA Dynamic Scenes): timestamp t trains on ONE view, camera
 `train_cameras[t % len(train_cameras)]` of train_meta.json, so the cameras cycle over a small set
-of neighbouring rig cameras. The default set (`train_cameras=None`) is, for each test camera of
-test_meta.json, the training camera whose centre is nearest to it (4 cameras for basketball:
-12, 18, 19, 24). With `eval`, every test camera is a test view at every `test_every`-th timestamp
+of neighbouring rig cameras (consecutive frames stay a small baseline apart, as in a hand-held
+video, which optical flow between them needs). Default (`train_cameras=None`): the
+`CLUSTER_SIZE` training cameras nearest to the first test camera, ordered along the cluster's
+longest axis (basketball: test camera 0 and training cameras 17, 29, 13, 21, 24). With `eval`,
+the test cameras (`test_cameras`, default: that first test camera only; the others face the
+scene from sides the cluster never sees) are test views at every `test_every`-th timestamp
 (0, k, 2k, ...); these are true novel views: no training image comes from those cameras.
 
 Masks: `seg/` gives people masks for the training cameras. They are the evaluation's dynamic
@@ -116,29 +119,40 @@ def _array(value: list, shape: tuple[int, int], key: str, path: Path) -> np.ndar
     return require_finite(array, path, f"'{key}' value")
 
 
-def default_train_cameras(train: Meta, test: Meta) -> list[int]:
-    """For each test camera the training camera nearest to it (sorted ids, no repeats)."""
-    train_centres, test_centres = train.centres(), test.centres()
-    nearest = np.linalg.norm(test_centres[:, None] - train_centres[None], axis=-1).argmin(axis=1)
-    return sorted({train.cam_id[0][i] for i in nearest})
+CLUSTER_SIZE = 5
 
 
-def _resolve_cameras(train: Meta, chosen: Sequence[int] | str | None, test: Meta | None) -> list[int]:
-    if chosen is None or chosen == "" or chosen == []:
-        if test is None:
-            raise DatasetError(f"{train.path.parent / TEST_FILE} is needed to choose the default training cameras "
-                               "(or name them: --train_cameras 1,2,3)")
-        return default_train_cameras(train, test)
+def default_train_cameras(train: Meta, test: Meta, size: int = CLUSTER_SIZE) -> list[int]:
+    """The `size` training cameras nearest to the first test camera, ordered along the cluster's
+    longest axis (a smooth sweep, like a rig's cameras left to right)."""
+    train_centres = train.centres()
+    nearest = np.argsort(np.linalg.norm(train_centres - test.centres()[0], axis=1), kind="stable")[:size]
+    cluster = train_centres[nearest]
+    offsets = cluster - cluster.mean(axis=0)
+    axis = np.linalg.svd(offsets, full_matrices=False)[2][0] if len(cluster) > 1 else np.zeros(3)
+    axis = axis if axis[np.argmax(np.abs(axis))] > 0 else -axis  # a fixed sign: the order is repeatable
+    order = np.argsort(offsets @ axis, kind="stable")
+    return [train.cam_id[0][i] for i in nearest[order]]
+
+
+def _parse_ids(chosen: Sequence[int] | str, option: str) -> list[int]:
     if isinstance(chosen, str):
         try:
-            chosen = [int(part) for part in chosen.split(",") if part.strip()]
+            return [int(part) for part in chosen.split(",") if part.strip()]
         except ValueError:
-            raise DatasetError(f"train_cameras={chosen!r}: expected camera ids like 1,2,3") from None
-    cameras = [int(c) for c in chosen]
-    unknown = [c for c in cameras if c not in train.cam_id[0]]
+            raise DatasetError(f"{option}={chosen!r}: expected camera ids like 1,2,3") from None
+    return [int(c) for c in chosen]
+
+
+def _resolve_cameras(meta: Meta, chosen: Sequence[int] | str | None, option: str) -> list[int] | None:
+    """The ids named in `chosen` (checked against `meta`), or None when nothing is named."""
+    if chosen is None or chosen == "" or chosen == []:
+        return None
+    cameras = _parse_ids(chosen, option)
+    unknown = [c for c in cameras if c not in meta.cam_id[0]]
     if unknown or not cameras:
-        raise DatasetError(f"train_cameras {unknown or cameras} are not cameras of {train.path} "
-                           f"(it has {train.cam_id[0]})")
+        raise DatasetError(f"{option} {unknown or cameras} are not cameras of {meta.path} "
+                           f"(it has {meta.cam_id[0]})")
     return cameras
 
 
@@ -254,13 +268,14 @@ def triangulate_first_timestep(source_path: Path | str, out_file: Path | str, se
 
 def read_panoptic(source_path: Path | str, images: str = "ims", resolution: int | float = -1,
                   eval: bool = False, white_background: bool = False, llffhold: int = 8,
-                  train_cameras: Sequence[int] | str | None = None, test_every: int = 10,
-                  train_masks: bool = False, hull_voxels: int = 96) -> SceneInfo:
+                  train_cameras: Sequence[int] | str | None = None, test_cameras: Sequence[int] | str | None = None,
+                  test_every: int = 10, train_masks: bool = False, hull_voxels: int = 96) -> SceneInfo:
     """Read a Dynamic3DGaussians-layout capture with the monocular protocol (module docstring).
 
     Args:
         images: unused (the layout's image folder is ims/); llffhold unused (see test_every).
         train_cameras: rig camera ids cycled over the timestamps (list or "1,2,3"); None = default.
+        test_cameras: test_meta.json camera ids held out with `eval`; None = the first one.
         test_every: with `eval`, test views at timestamps 0, k, 2k, ... (k = test_every).
         train_masks: give training the seg/ masks as `Camera.mask` (by default evaluation only).
         hull_voxels: grid resolution of the test cameras' visual-hull masks.
@@ -275,7 +290,15 @@ def read_panoptic(source_path: Path | str, images: str = "ims", resolution: int 
             if getattr(test_meta, key) != getattr(train_meta, key):
                 raise DatasetError(f"{test_meta.path}: {key} {getattr(test_meta, key)} differs from "
                                    f"{train_meta.path}'s {getattr(train_meta, key)}")
-    cycle = _resolve_cameras(train_meta, train_cameras, test_meta)
+    cycle = _resolve_cameras(train_meta, train_cameras, "train_cameras")
+    if cycle is None:
+        if test_meta is None:
+            raise DatasetError(f"{source / TEST_FILE} is needed to choose the default training cameras "
+                               "(or name them: --train_cameras 1,2,3)")
+        cycle = default_train_cameras(train_meta, test_meta)
+    held_out = None
+    if eval:
+        held_out = _resolve_cameras(test_meta, test_cameras, "test_cameras") or test_meta.cam_id[0][:1]
     steps = train_meta.num_steps
     point_file = find_point_file(source, POINT_FILES)
     raw_points = None if point_file is None else RawPoints.read(point_file)
@@ -298,16 +321,16 @@ def read_panoptic(source_path: Path | str, images: str = "ims", resolution: int 
     specs = [spec(train_meta, t, train_meta.column(cycle[t % len(cycle)]), has_seg) for t in range(steps)]
     test_steps = list(range(0, steps, test_every)) if eval else []
     if eval:
-        specs += [spec(test_meta, t, c, False) for t in test_steps for c in range(test_meta.num_cameras)]
+        specs += [spec(test_meta, t, test_meta.column(c), False) for t in test_steps for c in held_out]
     background = (1.0, 1.0, 1.0) if white_background else (0.0, 0.0, 0.0)
     cameras = load_views(specs, resolution, background, same_size="all")
     train = list(range(steps))
     test = list(range(steps, len(cameras)))
     if eval and has_seg:
-        _add_hull_masks(cameras[steps:], train_meta, test_meta, test_steps, source, hull_voxels)
+        _add_hull_masks(cameras[steps:], train_meta, test_meta, held_out, test_steps, source, hull_voxels)
     point_cloud = None if raw_points is None else raw_points.to_point_cloud([cameras[i] for i in train])
     # what the run trained and tested on (train.py records it in config.json as "_protocol")
-    protocol = {"train_cameras": cycle, "test_cameras": test_meta.cam_id[0] if eval else [], "test_every": test_every,
+    protocol = {"train_cameras": cycle, "test_cameras": held_out or [], "test_every": test_every,
                 "test_timestamps": test_steps, "train_masks": train_masks,
                 "test_masks": "visual hull of seg/" if eval and has_seg else None}
     log.info("panoptic monocular protocol: timestamp t trains on camera %s[t %% %d]; test cameras %s at %d timestamps",
@@ -317,8 +340,8 @@ def read_panoptic(source_path: Path | str, images: str = "ims", resolution: int 
                           metadata={"protocol": protocol, "point_file": str(point_file) if point_file else None})
 
 
-def _add_hull_masks(test_cameras: list, train_meta: Meta, test_meta: Meta, test_steps: list[int], source: Path,
-                    voxels: int) -> None:
+def _add_hull_masks(test_cameras: list, train_meta: Meta, test_meta: Meta, held_out: list[int],
+                    test_steps: list[int], source: Path, voxels: int) -> None:
     """Set extras["eval_mask"] of the test views (test order: timestamp-major) from the seg/ hull."""
     import cv2
     import torch
@@ -326,7 +349,8 @@ def _add_hull_masks(test_cameras: list, train_meta: Meta, test_meta: Meta, test_
     width, height = test_cameras[0].width, test_cameras[0].height
     box = _hull_box(train_meta)
     shift = np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
-    per_step = test_meta.num_cameras
+    columns = [test_meta.column(c) for c in held_out]
+    per_step = len(columns)
     for n, t in enumerate(test_steps):
         segs, Ks, w2cs = [], [], []
         for c in range(train_meta.num_cameras):
@@ -344,8 +368,8 @@ def _add_hull_masks(test_cameras: list, train_meta: Meta, test_meta: Meta, test_
             raise DatasetError(f"{source / 'seg'}: only {len(segs)} training cameras have masks at timestamp {t}; "
                                "the test views' hull needs 3 or more")
         hull = visual_hull_masks(segs, np.stack(Ks), np.stack(w2cs),
-                                 np.stack([test_meta.K[t, c] + shift for c in range(per_step)]),
-                                 test_meta.w2c[t], (train_meta.width, train_meta.height), box, voxels=voxels)
+                                 np.stack([test_meta.K[t, c] + shift for c in columns]),
+                                 test_meta.w2c[t, columns], (train_meta.width, train_meta.height), box, voxels=voxels)
         for c in range(per_step):
             mask = hull[c].astype(np.uint8)
             if (width, height) != (train_meta.width, train_meta.height):  # carved at the stored size

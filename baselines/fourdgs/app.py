@@ -142,7 +142,8 @@ def reader_options(source: Path | str, model) -> dict:
     """The chosen reader's own options from ``ModelParams`` (panoptic: its camera cycle and test stride)."""
     if dataset_family(Path(source), model.dataset_type) != "panoptic":
         return {}
-    return {"train_cameras": model.train_cameras or None, "test_every": model.test_every}
+    return {"train_cameras": model.train_cameras or None, "test_cameras": model.test_cameras or None,
+            "test_every": model.test_every}
 
 
 def _check_model_folder(args, argv: list[str], source: Path, plugin_classes: list[type[Plugin]],
