@@ -182,6 +182,7 @@ def _edited(src: Path, dst: Path, name: str, edit) -> Path:
     ("train_meta.json", lambda d: d["w2c"].pop(), "per-timestamp lists differ in length"),
     ("train_meta.json", lambda d: d["w2c"][1][3][0].__setitem__(0, float("nan")), "non-finite 'w2c' value"),
     ("test_meta.json", lambda d: d.pop("k"), "missing key 'k'"),
+    ("train_meta.json", lambda d: d["cam_id"][3].reverse(), "'cam_id'[3] lists the cameras in another order"),
 ])
 def test_bad_meta_gives_one_error_naming_the_file(capture, tmp_path, name, edit, culprit):
     source = _edited(capture, tmp_path / "bad", name, edit)

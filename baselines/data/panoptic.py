@@ -92,6 +92,9 @@ class Meta:
             raise DatasetError(f"{path}: 'cam_id' holds a non-integer: {exc}") from None
         if len(set(self.cam_id[0])) != self.num_cameras:
             raise DatasetError(f"{path}: 'cam_id'[0] repeats a camera: {self.cam_id[0]}")
+        moved = next((t for t, row in enumerate(self.cam_id) if row != self.cam_id[0]), None)
+        if moved is not None:  # columns index cameras at every timestamp
+            raise DatasetError(f"{path}: 'cam_id'[{moved}] lists the cameras in another order than 'cam_id'[0]")
 
     def column(self, camera_id: int) -> int:
         """The camera's position in the per-timestamp lists (it is the same at every timestamp)."""
