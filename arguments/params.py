@@ -18,7 +18,7 @@ from .fields import param
 
 BACKENDS = ("auto", "cpu", "reference", "gsplat")
 MLP_PRECISIONS = ("auto", "float32", "bfloat16")
-DATASET_TYPES = ("auto", "nvidia", "dnerf", "hypernerf", "colmap", "synthetic")
+DATASET_TYPES = ("auto", "nvidia", "dnerf", "hypernerf", "colmap", "panoptic", "synthetic")
 KPLANES_KEYS = ("grid_dimensions", "input_coordinate_dim", "output_coordinate_dim", "resolution")
 
 _COMPAT_4DGS_UNUSED = "no effect in 4DGS either"
@@ -101,6 +101,13 @@ class ModelParams:
     force_dataset_points: bool = param(False, "start from the dataset's point file even when the "
                                               "training cameras barely see it (placeholder check)",
                                        ours=True)
+    train_cameras: str = param("", "panoptic: rig camera ids the monocular protocol cycles over, one per "
+                                   "timestamp, e.g. 21,29,24 (empty: the 5 training cameras nearest the "
+                                   "first test camera)", ours=True)
+    test_cameras: str = param("", "panoptic: test_meta.json camera ids held out with --eval, e.g. 0,10 "
+                                  "(empty: the first test camera)", ours=True)
+    test_every: int = param(10, "panoptic: with --eval the test cameras are test views at every "
+                                "test_every-th timestamp", ours=True, check=_check_positive)
 
 
 @dataclass

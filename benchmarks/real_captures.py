@@ -9,13 +9,20 @@ a local clone (a plain or a bare clone) and writes `DATA/<name>` (default `data/
 
 - family `nvidia`: NVIDIA Dynamic Scenes frames in the DynamicNeRF layout; the entries in `keep`
   (`images/`, `disp/`, `poses_bounds.npy`) are copied as they are, nothing else;
+- family `panoptic`: a CMU Panoptic capture in the Dynamic3DGaussians layout; the entries in
+  `keep` (`ims/`, `seg/`, `train_meta.json`, `test_meta.json`) are copied, then the static cloud
+  `points3D.ply` is triangulated by pycolmap from every train_meta camera at timestamp 0
+  (`baselines.data.panoptic.triangulate_first_timestep`; the repository's `init_pt_cld.npz` is
+  not used);
 - family `clip`: a folder of video frames (DAVIS-style JPGs) with no cameras; the frames go to
   `DATA/src/<name>` and `python -m baselines.prepare` (pycolmap SfM, auto motion masks) writes
   the COLMAP-layout dataset `DATA/<name>` with `prepare_flags`.
 
-Held-out protocol (`--eval`, every `llffhold`-th frame, 0, 8, 16, ...) is the family's: NVIDIA's
-monocular protocol holds out every 8th frame; prepared clips use the same LLFF rule on the
-registered frames.
+Held-out protocol (`--eval`) is the family's: NVIDIA's monocular protocol holds out every 8th
+frame (`llffhold`); prepared clips use the same LLFF rule on the registered frames; panoptic
+trains on one camera per timestamp cycling over the 5 training cameras nearest the first test
+camera (17, 29, 13, 21, 24 for basketball) and tests on that held-out camera (0) at every 10th
+timestamp (`--train_cameras`, `--test_cameras`, `--test_every`).
 """
 from __future__ import annotations
 
@@ -29,7 +36,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DATA = ROOT / "data" / "real"
-FAMILIES = ("nvidia", "clip")
+FAMILIES = ("nvidia", "panoptic", "clip")
+POINTS_FILE = "points3D.ply"  # panoptic: the cloud setup triangulates
 
 
 class CaptureError(ValueError):
@@ -39,13 +47,13 @@ class CaptureError(ValueError):
 @dataclass(frozen=True)
 class Capture:
     name: str
-    family: str                    # nvidia | clip
+    family: str                    # nvidia | panoptic | clip
     repo: str                      # GitHub owner/name
     commit: str                    # 40-hex commit the data is read from
     folder: str                    # folder inside the repository
     what: str                      # one line for the table in docs/REAL_CAPTURES.md
     resolution: int = 1            # train.py -r (downscale factor of the stored images)
-    keep: tuple[str, ...] = ()     # nvidia: entries of `folder` copied into the dataset
+    keep: tuple[str, ...] = ()     # nvidia, panoptic: entries of `folder` copied into the dataset
     prepare_flags: tuple[str, ...] = ()  # clip: options of `python -m baselines.prepare`
 
     @property
@@ -66,6 +74,11 @@ CAPTURES: dict[str, Capture] = {c.name: c for c in (
             commit="60c41bd1a306341bddac115cbc31c8243ea92618", folder="Balloon1/images",
             what="the same 12 Balloon1 frames without poses or disparity, through prepare (COLMAP cameras, flow path)",
             prepare_flags=("--size", "240")),
+    Capture(name="panoptic_basketball", family="panoptic", repo="guanxiangwenyyds/4dreconstruction",
+            commit="064f5e5836f85aa1798c86bcff5460b80103ea9a", folder="data/basketball",
+            what="CMU Panoptic basketball (Dynamic3DGaussians layout), 150 frames 640x360, 27 training + 4 test "
+                 "cameras, seg/ person masks; monocular protocol",
+            resolution=2, keep=("ims", "seg", "train_meta.json", "test_meta.json")),
 )}
 
 
@@ -82,6 +95,8 @@ def is_ready(capture: Capture, data_root: Path) -> bool:
     folder = dataset_dir(capture, data_root)
     if capture.family == "nvidia":
         return (folder / "poses_bounds.npy").is_file() and (folder / "images").is_dir()
+    if capture.family == "panoptic":
+        return all((folder / name).exists() for name in capture.keep) and (folder / POINTS_FILE).is_file()
     return (folder / "images").is_dir() and (folder / "sparse" / "0").is_dir() and (folder / "prepare_report.json").is_file()
 
 
@@ -165,6 +180,13 @@ def setup(capture: Capture, clone: Path, data_root: Path) -> Path:
     if capture.family == "nvidia":
         count = extract(clone, capture.commit, capture.folder, target, capture.keep)
         print(f"{capture.name}: {count} files -> {target}")
+        return target
+    if capture.family == "panoptic":
+        from baselines.data.panoptic import triangulate_first_timestep
+
+        count = extract(clone, capture.commit, capture.folder, target, capture.keep)
+        points = triangulate_first_timestep(target, target / POINTS_FILE)
+        print(f"{capture.name}: {count} files -> {target}; {points} static points triangulated -> {POINTS_FILE}")
         return target
     frames = frames_dir(capture, data_root)
     count = extract(clone, capture.commit, capture.folder, frames)

@@ -11,15 +11,17 @@ The captures and their sources (repository + commit) are the registry in
 `benchmarks/real_captures.py`; a capture missing under `--data` stops the command before any
 training with one error that prints how to fetch it. Each (capture, method) is an ordinary
 `train.py` run in `OUT/<capture>/<method>` with the family's default config (no `--configs`:
-`arguments/nvidia/*` for NVIDIA, `arguments/hypernerf/*` for prepared clips), `--eval` (every 8th
-frame held out), the same schedule and `--seed` for both methods; ReFlow runs with its defaults
+`arguments/nvidia/*` for NVIDIA, `arguments/hypernerf/*` for prepared clips and panoptic), `--eval`
+(the family's hold-out: every 8th frame; panoptic: its test camera every 10th timestamp), the same schedule and `--seed` for both methods; ReFlow runs with its defaults
 (`--plugin reflow`); `--methods ...,reflow_flow_provider` adds a diagnosis row, ReFlow with its
 canonical space built from triangulated optical flow instead of the dataset's `disp/`. A run is done when `real_done.json` exists (written after train.py
 succeeded, with the command and the code's commit); a folder without it is a torn run and is
 redone, and a folder trained with another command stops the suite (use a fresh `--out` after
 changing the schedule or the code you want to measure).
 
-In-mask metrics: the dataset's `motion_masks/` when it has them (prepare's auto masks), else
+In-mask metrics: the dataset's masks when every held-out view has one (`motion_masks/`, e.g.
+prepare's auto masks, or evaluation-only ground truth: NVIDIA `gt/motion_masks/`, panoptic `seg/`
+carved into the test cameras as a visual hull), else
 masks estimated once per capture over ALL frames from DIS flow and the known cameras
 (`baselines.data.motion_masks`, epipolar test, cached in `OUT/<capture>/eval_masks/`); the same
 masks score both methods. PSNR-mask / PSNR-outside are computed from the saved 8-bit test
@@ -151,13 +153,13 @@ def load_capture(capture: Capture, data_root: Path):
 
 
 def eval_masks(capture: Capture, scene, out: Path) -> list[np.ndarray]:
-    """[H, W] bool motion mask per held-out view (test order), dataset masks or estimated (cached)."""
+    """[H, W] bool motion mask per held-out view (test order), the dataset's masks or estimated (cached)."""
     from baselines.data.motion_masks import estimate_motion_masks
 
     folder = out / capture.name / "eval_masks"
     tests = scene.test_cameras
-    if all(c.mask is not None for c in tests):
-        return [c.mask.cpu().numpy() > 0.5 for c in tests]
+    if all(c.evaluation_mask is not None for c in tests):  # the dataset's (training or evaluation-only) masks
+        return [c.evaluation_mask.cpu().numpy() > 0.5 for c in tests]
     paths = [folder / f"{c.image_name}.png" for c in tests]
     cached = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) if p.is_file() else None for p in paths]
     if all(m is not None and m.shape == (c.height, c.width) for m, c in zip(cached, tests)):

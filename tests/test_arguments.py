@@ -35,7 +35,7 @@ FOURDGS_FIELDS = {
                         "opacity_threshold_fine_init opacity_threshold_fine_after batch_size "
                         "add_point",
 }
-OURS = {ModelParams: {"dataset_type", "force_dataset_points"}, PipelineParams: {"backend", "device", "time_outside"},
+OURS = {ModelParams: {"dataset_type", "force_dataset_points", "train_cameras", "test_cameras", "test_every"}, PipelineParams: {"backend", "device", "time_outside"},
         OptimizationParams: {"seed", "densify_max_gaussians", "prune_min_gaussians",
                              "densify_grad_from", "stall_iterations"},
         ModelHiddenParams: {"mlp_precision"}}

@@ -23,7 +23,7 @@ def test_registry_pins_every_capture_to_a_commit_and_a_known_family():
         assert re.fullmatch(r"[0-9a-f]{40}", capture.commit), name
         assert capture.family in real_captures.FAMILIES, name
         assert re.fullmatch(r"[\w.-]+/[\w.-]+", capture.repo), name
-        assert bool(capture.keep) == (capture.family == "nvidia"), name  # nvidia copies named entries only
+        assert bool(capture.keep) == (capture.family in ("nvidia", "panoptic")), name  # they copy named entries only
 
 
 def test_missing_capture_stops_before_training_naming_repository_commit_and_setup(tmp_path, capsys):

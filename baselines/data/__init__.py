@@ -1,4 +1,4 @@
-"""Dataset readers (nvidia, dnerf, hypernerf, colmap) producing cameras in our convention.
+"""Dataset readers (nvidia, dnerf, hypernerf, colmap, panoptic) producing cameras in our convention.
 
     scene = load_scene("data/nvidia/Balloon1", images="images_2", eval=True)
     points, source = initial_point_cloud(scene)   # "dataset" | "triangulated" | "random"

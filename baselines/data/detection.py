@@ -8,8 +8,9 @@ other codebases keeps ``poses_bounds.npy`` + ``images/`` next to ``dataset.json`
    poses beside the very images they belong to, the NVIDIA/LLFF family's own files;
 2. ``hypernerf``: ``dataset.json`` + ``scene.json``;
 3. ``dnerf``: ``transforms_train.json``;
-4. ``nvidia``: ``poses_bounds.npy`` alone (the reader then names the missing image folder);
-5. ``colmap``: ``sparse/0/cameras.{bin,txt}`` (last: LLFF-style scenes keep the COLMAP model they
+4. ``panoptic``: ``train_meta.json`` + ``ims/`` (CMU Panoptic in the Dynamic3DGaussians layout);
+5. ``nvidia``: ``poses_bounds.npy`` alone (the reader then names the missing image folder);
+6. ``colmap``: ``sparse/0/cameras.{bin,txt}`` (last: LLFF-style scenes keep the COLMAP model they
    were posed with).
 
 A COLMAP model beside ``poses_bounds.npy`` is no competing layout: LLFF poses come from it, and the
@@ -40,6 +41,7 @@ SIGNATURES: tuple[tuple[str, str, Callable[[Path], bool]], ...] = (
     ("hypernerf", "dataset.json + scene.json",
      lambda p: (p / "dataset.json").is_file() and (p / "scene.json").is_file()),
     ("dnerf", "transforms_train.json", lambda p: (p / "transforms_train.json").is_file()),
+    ("panoptic", "train_meta.json + ims/", lambda p: (p / "train_meta.json").is_file() and (p / "ims").is_dir()),
     ("nvidia", "poses_bounds.npy", lambda p: (p / "poses_bounds.npy").is_file()),
     ("colmap", "sparse/0/cameras.{bin,txt}", lambda p: find_model_dir(p) is not None),
 )

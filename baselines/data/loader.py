@@ -12,6 +12,7 @@ from .dnerf import read_dnerf
 from .errors import DatasetError
 from .hypernerf import read_hypernerf
 from .nvidia import POSES_FILE, check_poses_bounds, read_nvidia
+from .panoptic import read_panoptic
 from .scene_info import SceneInfo
 from .split_check import warn_split_overlap
 
@@ -22,6 +23,7 @@ READERS: dict[str, Callable[..., SceneInfo]] = {
     "dnerf": read_dnerf,
     "hypernerf": read_hypernerf,
     "colmap": read_colmap,
+    "panoptic": read_panoptic,
 }
 _COMMON_ARGUMENTS = ("source_path", "images", "resolution", "eval", "white_background", "llffhold")
 ALIASES = {"llff": "nvidia", "dynamicnerf": "nvidia", "blender": "dnerf", "nerfies": "hypernerf"}
@@ -47,8 +49,8 @@ def load_scene(source_path: Path | str, dataset_type: str | None = "auto", image
 
     Args:
         source_path: dataset folder.
-        dataset_type: "auto" (or None) to detect, else one of nvidia, dnerf, hypernerf, colmap
-            (aliases: llff, blender, nerfies).
+        dataset_type: "auto" (or None) to detect, else one of nvidia, dnerf, hypernerf, colmap,
+            panoptic (aliases: llff, blender, nerfies).
         images: image folder name for nvidia/colmap (e.g. "images_2").
         resolution: 1, 2, 4, 8 = downscale factor; -1 = original unless wider than 1600 px;
             another positive value = target width (3DGS's rule).
@@ -56,7 +58,8 @@ def load_scene(source_path: Path | str, dataset_type: str | None = "auto", image
         white_background: composite RGBA images on white instead of black.
         llffhold: hold-out period for nvidia/colmap.
         reader_options: extra keyword arguments of the chosen reader, e.g.
-            {"apply_scene_transform": False} for hypernerf (see `read_hypernerf`).
+            {"apply_scene_transform": False} for hypernerf (see `read_hypernerf`), or
+            {"train_cameras": [12, 18], "test_every": 10} for panoptic (see `read_panoptic`).
     """
     source = Path(source_path)
     _check_arguments(resolution, llffhold)

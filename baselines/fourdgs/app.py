@@ -126,6 +126,7 @@ def _load_and_claim(args, folder: RunFolder, source: Path, embedded: bool, plugi
             source, dataset_type=args.model.dataset_type, images=args.model.images,
             resolution=args.model.resolution, eval=args.model.eval,
             white_background=args.model.white_background, llffhold=args.model.llffhold,
+            reader_options=reader_options(source, args.model),
         )
     except EmptySplitError as err:
         raise EmptySplitError(f"{err}{_frame_needs(plugins, 0, prefix='; ')}") from None
@@ -139,6 +140,7 @@ def _load_and_claim(args, folder: RunFolder, source: Path, embedded: bool, plugi
     try:
         write_cfg_args(model_path, args, {"_components": {name: sorted(active) for name, active in components.items()},
                                            "_dataset_layout": scene.metadata.get("layout_detection"),
+                                           "_protocol": scene.metadata.get("protocol"),
                                            "_default_config": decision.as_dict() if decision else None})
         for plugin in plugins:
             log.info("plugin %s: components %s", plugin.name, sorted(plugin.enabled) or "none")
@@ -149,6 +151,14 @@ def _load_and_claim(args, folder: RunFolder, source: Path, embedded: bool, plugi
         raise
     trainer.run_folder = folder
     return trainer
+
+
+def reader_options(source: Path | str, model) -> dict:
+    """The chosen reader's own options from ``ModelParams`` (panoptic: its camera cycle and test stride)."""
+    if dataset_family(Path(source), model.dataset_type) != "panoptic":
+        return {}
+    return {"train_cameras": model.train_cameras or None, "test_cameras": model.test_cameras or None,
+            "test_every": model.test_every}
 
 
 def _check_model_folder(args, argv: list[str], source: Path, plugin_classes: list[type[Plugin]],
@@ -320,6 +330,7 @@ def load_run(argv: list[str]) -> LoadedRun:
         args.model.source_path, dataset_type=args.model.dataset_type, images=args.model.images,
         resolution=args.model.resolution, eval=args.model.eval,
         white_background=args.model.white_background, llffhold=args.model.llffhold,
+        reader_options=reader_options(args.model.source_path, args.model),
     )
     plugins = [cls({g: args.extra[g] for g in cls.param_groups}, components[cls.name]) for cls in plugin_classes]
     trainer = Trainer(args, scene, plugins, model_path)

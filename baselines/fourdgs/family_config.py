@@ -43,10 +43,12 @@ FAMILY_CONFIGS = {
     "hypernerf": "hypernerf/default.py",
     "dnerf": "dnerf/dnerf_default.py",
     "colmap": "hypernerf/default.py",
+    "panoptic": "hypernerf/default.py",
 }
 
 
-WHITE_BACKGROUND = {"synthetic": True, "dnerf": True, "nvidia": False, "hypernerf": False, "colmap": False}
+WHITE_BACKGROUND = {"synthetic": True, "dnerf": True, "nvidia": False, "hypernerf": False, "colmap": False,
+                    "panoptic": False}
 
 
 def family_background(family: str) -> bool | None:
