@@ -213,7 +213,7 @@ class RunLock:
         if fd >= 0:
             try:
                 os.unlink(self.path)
-            except OSError:
+            except OSError:  # already gone: a lock file is no lock once its flock is dropped
                 pass
             os.close(fd)
         self._undo_folder()
@@ -222,7 +222,7 @@ class RunLock:
         if self.created:
             try:
                 self.folder.rmdir()  # only if this run wrote nothing else into it
-            except OSError:
+            except OSError:  # not empty (or gone): the folder stays as it is
                 pass
 
 

@@ -150,7 +150,7 @@ def append_line(fd: int, text: str, path: Path) -> None:
     except OSError as err:
         try:
             os.ftruncate(fd, start)
-        except OSError:
+        except OSError:  # best effort; readers skip a torn last line with a warning anyway
             pass
         raise OSError(err.errno, err.strerror or str(err), str(path)) from None
 
