@@ -51,6 +51,14 @@ def _composite_cpu(projection: Projection, opacities: Tensor, features: Tensor, 
     return composite_tiled(projection, opacities, features, width, height)
 
 
+def _project_cpu(means, quats, scales, viewmat, K, width, height, opacities, near, far, eps2d) -> Projection:
+    # The compiled projection when it builds and fits the tensors; else the torch twin, with the
+    # reason logged once (as the compositor)
+    from .project_kernel import project_gaussians_cpu
+
+    return project_gaussians_cpu(means, quats, scales, viewmat, K, width, height, opacities, near, far, eps2d)
+
+
 def gsplat_unavailable_reason(device: torch.device) -> str | None:
     """None when the gsplat backend can run on `device`, else the reason it cannot."""
     if device.type != "cuda":
@@ -81,7 +89,7 @@ def resolve_backend(name: str, device: torch.device) -> Backend:
     if name == "reference":
         return Backend("reference", project_gaussians_torch, _composite_reference)
     if name == "cpu":
-        return Backend("cpu", project_gaussians_torch, _composite_cpu)
+        return Backend("cpu", _project_cpu, _composite_cpu)
     if name == "gsplat":
         reason = gsplat_unavailable_reason(device)
         if reason is not None:
