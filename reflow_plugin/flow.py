@@ -90,10 +90,22 @@ def flow_features(proj_a: Projection, proj_b: Projection, near: float = NEAR) ->
 
     v = 1 where the Gaussian has a flow target: valid in both views (`valid_in_view`), a finite
     conic in a, and a plausible footprint in both (`plausible_on_screen`); elsewhere A = I, c = 0.
+    The compiled CPU kernel (flow_kernel.py) where it can run, else `flow_features_torch`.
 
     Args:
         proj_a, proj_b: the same N Gaussians projected into view a (at t_a) and view b (at t_b).
     """
+    from . import flow_kernel  # a compiled library behind ctypes: loaded on first use
+
+    reason = flow_kernel.unusable_reason(proj_a, proj_b)
+    if reason is None:
+        return flow_kernel.flow_features_kernel(proj_a, proj_b, near, MAX_FOOTPRINT_PX ** 2, MAX_SCREEN_PX)
+    flow_kernel.log_fallback_once(reason)
+    return flow_features_torch(proj_a, proj_b, near)
+
+
+def flow_features_torch(proj_a: Projection, proj_b: Projection, near: float = NEAR) -> Tensor:
+    """`flow_features` in torch: the oracle of the compiled kernel's tests and its fallback."""
     valid = (valid_in_view(proj_b, near) & valid_in_view(proj_a, near) & plausible_on_screen(proj_a)
              & plausible_on_screen(proj_b) & torch.isfinite(proj_a.conics).all(dim=1))
     # Invalid rows get harmless inputs BEFORE the math, so their extreme numbers reach neither the
