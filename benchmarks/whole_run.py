@@ -101,7 +101,14 @@ RUNNING: list = []
 
 
 def main() -> None:
-    out, argv = Path(sys.argv[1]), sys.argv[sys.argv.index("--") + 1:]
+    own = sys.argv[1:sys.argv.index("--")] if "--" in sys.argv else sys.argv[1:]
+    if any(a in ("-h", "--help") for a in own):
+        print(__doc__)
+        sys.exit(0)
+    if len(own) != 1 or "--" not in sys.argv:
+        sys.exit("whole_run.py: usage: python benchmarks/whole_run.py OUT.json -- [train.py flags] "
+                 "(the ratio ReFlow / baseline: benchmarks/reflow_overhead.py)")
+    out, argv = Path(own[0]), sys.argv[sys.argv.index("--") + 1:]
     instrument()
     from baselines.fourdgs.app import train_from_argv
 
