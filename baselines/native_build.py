@@ -15,8 +15,9 @@ Cache: `$REFLOW4DGS_KERNEL_CACHE`, else `$XDG_CACHE_HOME/reflow4dgs/kernels`, el
 compiler (path and `--version`), the flags and the platform (not the torch version: the libraries
 do not link torch). Each build writes into a private temporary directory and is moved into place
 with an atomic rename, so processes that build at the same time (pytest-xdist, two trainings)
-never see a torn file. Users: baselines/render/kernel.py (compositing) and
-baselines/fourdgs/plane_kernel.py (HexPlane lookups).
+never see a torn file. Users: baselines/render/kernel.py (compositing),
+baselines/render/project_kernel.py (EWA projection), baselines/fourdgs/plane_kernel.py (HexPlane
+lookups) and reflow_plugin/flow_kernel.py (ReFlow's per-Gaussian flow channels).
 """
 from __future__ import annotations
 
