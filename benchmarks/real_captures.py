@@ -52,7 +52,7 @@ DAVIS_REPO, DAVIS_COMMIT = "MathLee/EOR-VOS", "1bde4d5f936304c5ad69e301956e9d650
 DAVIS_CLIPS = {  # clip: (frames, what the camera and the subject do)
     "blackswan": (50, "a swan swimming, slow pan"), "bmx-trees": (80, "a BMX rider behind trees, fast pan"),
     "breakdance": (84, "a dancer spinning, camera nearly still"), "cows": (104, "a cow walking, slow pan"),
-    "dog": (60, "a dog running, camera following"), "drift-chicane": (52, "a drifting car, far, fast pan"),
+    "dog": (60, "a dog running, camera following"), "drift-chicane": (52, "a drifting car, camera on a tripod"),
     "goat": (90, "a goat walking, camera following"), "kite-surf": (50, "a kite surfer on waves, pan"),
     "libby": (49, "a dog running towards the camera, fast pan"),
     "motocross-jump": (40, "a motocross jump, fast pan and zoom"),
