@@ -31,14 +31,16 @@ from baselines.synthetic import (Orbit, Pan, RigidMotion, SceneObject, SceneSpec
 
 
 def video_scene(frames: int = 24, width: int = 160, height: int = 120, sweep_deg: float = 30.0,
-                camera: str = "orbit", mover_size: float = 0.3) -> SceneSpec:
+                camera: str = "orbit", mover_size: float = 0.3, mover_speed: float = 1.0) -> SceneSpec:
     """The static room, a camera and a big box moving across the view (diagonally: motion along
     the horizontal epipolar lines of an orbit is invisible to masks). `camera`: "orbit" (moves
-    on an arc, looking at the room), "static" (never moves) or "pan" (turns on the spot)."""
+    on an arc, looking at the room), "static" (never moves) or "pan" (turns on the spot).
+    `mover_speed` scales the box's velocity and spin (slower: its matches survive verification)."""
     room = get_scene("static")
     mover = SceneObject("mover", "box", size=(mover_size,) * 3, position=(-1.2, 1.0, -0.4),
                         texture=Texture("checker", ((0.95, 0.9, 0.2), (0.1, 0.3, 0.8)), period=0.1, detail=0.3),
-                        motion=RigidMotion(velocity=(1.6, 0.9, 0.6), spin_deg=90.0))
+                        motion=RigidMotion(velocity=tuple(mover_speed * v for v in (1.6, 0.9, 0.6)),
+                                           spin_deg=90.0 * mover_speed))
     paths = {"orbit": Orbit(target=(0.0, 1.0, -1.0), radius=4.0, height=0.4, start_deg=-sweep_deg / 2,
                             sweep_deg=sweep_deg),
              "static": StaticCamera(position=(0.0, 1.4, 3.0), look_at=(0.0, 1.0, -1.0)),
@@ -78,10 +80,11 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=24)
     parser.add_argument("--width", type=int, default=160)
     parser.add_argument("--mover-size", type=float, default=0.3, help="half extent of the moving box (scene units)")
+    parser.add_argument("--mover-speed", type=float, default=1.0, help="scale of the box's velocity and spin")
     parser.add_argument("--out", type=Path, default=REPO / "output" / "prepare_bench")
     args = parser.parse_args()
     scene_dir, video = render_clip(args.out, frames=args.frames, width=args.width, height=args.width * 3 // 4,
-                                   mover_size=args.mover_size)
+                                   mover_size=args.mover_size, mover_speed=args.mover_speed)
     moving = np.mean([cv2.imread(str(p), cv2.IMREAD_GRAYSCALE).mean() / 255 for p in (scene_dir / "motion_masks").glob("*.png")])
     print(f"clip: {args.frames} frames {args.width}x{args.width * 3 // 4}, moving box covers {moving:.1%} of the view on average")
     truth = json.loads((scene_dir / "gt" / "cameras.json").read_text())["frames"]

@@ -16,7 +16,13 @@ a local clone (a plain or a bare clone) and writes `DATA/<name>` (default `data/
   not used);
 - family `clip`: a folder of video frames (DAVIS-style JPGs) with no cameras; the frames go to
   `DATA/src/<name>` and `python -m baselines.prepare` (pycolmap SfM, auto motion masks) writes
-  the COLMAP-layout dataset `DATA/<name>` with `prepare_flags`.
+  the COLMAP-layout dataset `DATA/<name>` with `prepare_flags`. A clip with `truth` (a folder
+  of annotation PNGs, one per source frame, pixel = object id, e.g. DAVIS `Annotations/480p/`)
+  also gets evaluation-only ground-truth masks: the annotations go to `DATA/truth/<name>` and,
+  binarised (any object id > 0) and resized to the prepared frames, to
+  `DATA/<name>/gt/motion_masks/<frame stem>.png` for each registered frame. Training never sees
+  them (it uses prepare's own auto masks, `motion_masks/`); real_suite scores "inside the masks"
+  with them.
 
 Held-out protocol (`--eval`) is the family's: NVIDIA's monocular protocol holds out every 8th
 frame (`llffhold`); prepared clips use the same LLFF rule on the registered frames; panoptic
@@ -34,10 +40,35 @@ import tarfile
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
+
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DATA = ROOT / "data" / "real"
 FAMILIES = ("nvidia", "panoptic", "clip")
 POINTS_FILE = "points3D.ply"  # panoptic: the cloud setup triangulates
+TRUTH_MASKS = "gt/motion_masks"  # clip with truth: evaluation-only masks inside the dataset
+
+DAVIS_REPO, DAVIS_COMMIT = "MathLee/EOR-VOS", "1bde4d5f936304c5ad69e301956e9d65082dfbc8"
+DAVIS_CLIPS = {  # clip: (frames, what the camera and the subject do)
+    "blackswan": (50, "a swan swimming, slow pan"), "bmx-trees": (80, "a BMX rider behind trees, fast pan"),
+    "breakdance": (84, "a dancer spinning, camera nearly still"), "cows": (104, "a cow walking, slow pan"),
+    "dog": (60, "a dog running, camera following"), "drift-chicane": (52, "a drifting car, camera on a tripod"),
+    "goat": (90, "a goat walking, camera following"), "kite-surf": (50, "a kite surfer on waves, pan"),
+    "libby": (49, "a dog running towards the camera, fast pan"),
+    "motocross-jump": (40, "a motocross jump, fast pan and zoom"),
+    "paragliding-launch": (80, "a paraglider taking off, slow pan"),
+    "scooter-black": (43, "a scooter crossing the view, pan"), "soapbox": (99, "a soapbox cart, camera following"),
+}
+# prepare's video defaults at 320 px wide (the frames are 854x480): the lady-running capture's size
+DAVIS_FLAGS = ("--size", "320")
+
+
+def _davis(clip: str) -> "Capture":
+    frames, what = DAVIS_CLIPS[clip]
+    return Capture(name="davis_" + clip.replace("-", "_"), family="clip", repo=DAVIS_REPO, commit=DAVIS_COMMIT,
+                   folder=f"DAVIS/JPEGImages/480p/{clip}", truth=f"DAVIS/Annotations/480p/{clip}",
+                   what=f"DAVIS {clip}, {frames} JPG frames 854x480, {what}; annotations as true masks",
+                   prepare_flags=DAVIS_FLAGS)
 
 
 class CaptureError(ValueError):
@@ -55,6 +86,7 @@ class Capture:
     resolution: int = 1            # train.py -r (downscale factor of the stored images)
     keep: tuple[str, ...] = ()     # nvidia, panoptic: entries of `folder` copied into the dataset
     prepare_flags: tuple[str, ...] = ()  # clip: options of `python -m baselines.prepare`
+    truth: str = ""                # clip: folder of annotation PNGs (object ids), evaluation only
 
     @property
     def url(self) -> str:
@@ -79,6 +111,7 @@ CAPTURES: dict[str, Capture] = {c.name: c for c in (
             what="CMU Panoptic basketball (Dynamic3DGaussians layout), 150 frames 640x360, 27 training + 4 test "
                  "cameras, seg/ person masks; monocular protocol",
             resolution=2, keep=("ims", "seg", "train_meta.json", "test_meta.json")),
+    *(_davis(clip) for clip in DAVIS_CLIPS),
 )}
 
 
@@ -90,6 +123,10 @@ def frames_dir(capture: Capture, data_root: Path) -> Path:
     return Path(data_root) / "src" / capture.name
 
 
+def truth_dir(capture: Capture, data_root: Path) -> Path:
+    return Path(data_root) / "truth" / capture.name
+
+
 def is_ready(capture: Capture, data_root: Path) -> bool:
     """True when `DATA/<name>` holds a dataset train.py can read for this family."""
     folder = dataset_dir(capture, data_root)
@@ -97,7 +134,8 @@ def is_ready(capture: Capture, data_root: Path) -> bool:
         return (folder / "poses_bounds.npy").is_file() and (folder / "images").is_dir()
     if capture.family == "panoptic":
         return all((folder / name).exists() for name in capture.keep) and (folder / POINTS_FILE).is_file()
-    return (folder / "images").is_dir() and (folder / "sparse" / "0").is_dir() and (folder / "prepare_report.json").is_file()
+    prepared = (folder / "images").is_dir() and (folder / "sparse" / "0").is_dir() and (folder / "prepare_report.json").is_file()
+    return prepared and (not capture.truth or (folder / TRUTH_MASKS).is_dir())
 
 
 def fetch_instructions(capture: Capture, data_root: Path, clone_root: str = "/tmp/clones") -> str:
@@ -191,6 +229,40 @@ def setup(capture: Capture, clone: Path, data_root: Path) -> Path:
     frames = frames_dir(capture, data_root)
     count = extract(clone, capture.commit, capture.folder, frames)
     print(f"{capture.name}: {count} frames -> {frames}; running prepare")
+    if capture.truth:  # before prepare's long run: a clone without the annotations stops here
+        truth = truth_dir(capture, data_root)
+        annotations = extract(clone, capture.commit, capture.truth, truth)
+        if annotations != count:
+            raise CaptureError(f"{capture.truth} holds {annotations} annotations for {count} frames at {capture.commit[:12]}")
     subprocess.run([sys.executable, "-m", "baselines.prepare", str(frames), "-o", str(target), "--quiet",
                     *capture.prepare_flags], cwd=ROOT, check=True)
+    if capture.truth:
+        written = write_truth_masks(truth_dir(capture, data_root), target)
+        print(f"{capture.name}: {written} ground-truth masks (evaluation only) -> {target / TRUTH_MASKS}")
     return target
+
+
+def write_truth_masks(annotations: Path, dataset: Path) -> int:
+    """`dataset/gt/motion_masks/<stem>.png` (255 = any object id > 0) for every frame in `dataset/images`.
+
+    prepare names a frame by its index in the SOURCE sequence (`00012.png`: the 13th frame), so
+    it takes the 13th annotation in name order, resized (nearest) to the prepared frame's size.
+    Returns the number written; CaptureError when an annotation is missing or unreadable."""
+    files = sorted(p for p in Path(annotations).iterdir() if p.suffix.lower() == ".png")
+    out = Path(dataset) / TRUTH_MASKS
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    frames = sorted(p for p in (Path(dataset) / "images").iterdir() if p.is_file())
+    for frame in frames:
+        index = int(frame.stem)
+        if index >= len(files):
+            raise CaptureError(f"{annotations} has {len(files)} annotations: none for source frame {index} ({frame.name})")
+        labels = cv2.imread(str(files[index]), cv2.IMREAD_UNCHANGED)
+        height, width = cv2.imread(str(frame), cv2.IMREAD_GRAYSCALE).shape
+        if labels is None:
+            raise CaptureError(f"cannot read annotation {files[index]}")
+        if labels.ndim == 3:  # a colour palette saved as RGB: any non-black pixel is an object
+            labels = labels.max(axis=2)
+        moving = cv2.resize((labels > 0).astype("uint8") * 255, (width, height), interpolation=cv2.INTER_NEAREST)
+        cv2.imwrite(str(out / f"{frame.stem}.png"), moving)
+    return len(frames)

@@ -19,9 +19,10 @@ succeeded, with the command and the code's commit); a folder without it is a tor
 redone, and a folder trained with another command stops the suite (use a fresh `--out` after
 changing the schedule or the code you want to measure).
 
-In-mask metrics: the dataset's masks when every held-out view has one (`motion_masks/`, e.g.
-prepare's auto masks, or evaluation-only ground truth: NVIDIA `gt/motion_masks/`, panoptic `seg/`
-carved into the test cameras as a visual hull), else
+In-mask metrics: the dataset's masks when every held-out view has one (evaluation-only ground
+truth first: NVIDIA and prepared clips' `gt/motion_masks/`, e.g. the DAVIS annotations, panoptic
+`seg/` carved into the test cameras as a visual hull; else `motion_masks/`, e.g. prepare's auto
+masks), else
 masks estimated once per capture over ALL frames from DIS flow and the known cameras
 (`baselines.data.motion_masks`, epipolar test, cached in `OUT/<capture>/eval_masks/`); the same
 masks score both methods. PSNR-mask / PSNR-outside are computed from the saved 8-bit test

@@ -82,9 +82,11 @@ class Camera:
 
     @property
     def evaluation_mask(self) -> Tensor | None:
-        """[H,W] motion mask the evaluation's region metrics use: the training mask, else the
-        dataset's ground-truth-only mask (extras["eval_mask"]), else None."""
-        return self.mask if self.mask is not None else self.extras.get("eval_mask")
+        """[H,W] motion mask the evaluation's region metrics use: the dataset's ground-truth-only
+        mask (extras["eval_mask"]) when it has one (truth beats an estimate, e.g. a prepared clip's
+        auto masks next to its annotations), else the training mask, else None."""
+        truth = self.extras.get("eval_mask")
+        return truth if truth is not None else self.mask
 
     @property
     def device(self) -> torch.device:

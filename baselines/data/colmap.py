@@ -11,6 +11,8 @@ Optional files (both written by `python -m baselines.prepare`):
 - `times.json`: `{"times": {"<image name>": t, ...}}` with t in [0, 1] for EVERY image of the
   model; replaces i / (N - 1), so frames dropped by SfM leave the others' times where they were.
 - `motion_masks/<image stem>.png`: per-image motion mask (non-zero = moving), one per image.
+- `gt/motion_masks/<image stem>.png`: ground-truth masks for EVALUATION only (e.g. a DAVIS clip's
+  annotations, written by `benchmarks/real_captures.py`), one per image; training never sees them.
 """
 from __future__ import annotations
 
@@ -58,6 +60,7 @@ def _intrinsics(camera, source: str, warned: set[str]) -> np.ndarray:
 
 TIMES_FILE = "times.json"
 MASK_FOLDER = "motion_masks"
+TRUTH_MASK_FOLDER = "gt/motion_masks"  # evaluation only
 
 
 def read_times(source: Path, names: list[str]) -> list[float] | None:
@@ -108,9 +111,9 @@ def warn_odd_times(path: Path, names: list[str], times: list[float]) -> None:
         log.warning("%s: %s", path, "; ".join(parts))
 
 
-def find_masks(source: Path, names: list[str]) -> list[Path] | None:
-    """`motion_masks/<stem>.<ext>` per image (None without the folder); `DatasetError` for a missing one."""
-    folder = source / MASK_FOLDER
+def find_masks(source: Path, names: list[str], folder_name: str = MASK_FOLDER) -> list[Path] | None:
+    """`<folder_name>/<stem>.<ext>` per image (None without the folder); `DatasetError` for a missing one."""
+    folder = source / folder_name
     if not folder.is_dir():
         return None
     by_stem = {p.stem: p for p in folder.iterdir() if p.is_file()}
@@ -141,6 +144,7 @@ def read_colmap(source_path: Path | str, images: str = "images", resolution: int
     names = [image.name for image in colmap_images]
     times = read_times(source, names)
     masks = find_masks(source, names)
+    truth = find_masks(source, names, TRUTH_MASK_FOLDER)
     warned: set[str] = set()
     specs = []
     for i, image in enumerate(colmap_images):
@@ -154,7 +158,8 @@ def read_colmap(source_path: Path | str, images: str = "images", resolution: int
             image_path=image_dir / image.name, image_name=Path(image.name).with_suffix("").as_posix(),
             K=_intrinsics(camera, str(model_dir), warned), calibrated_size=(int(camera.width), int(camera.height)),
             viewmat=viewmat, time=times[i] if times is not None else (i / (n - 1) if n > 1 else 0.0),
-            frame_index=i, camera_id=int(image.camera_id), mask_path=masks[i] if masks is not None else None))
+            frame_index=i, camera_id=int(image.camera_id), mask_path=masks[i] if masks is not None else None,
+            eval_mask_path=truth[i] if truth is not None else None))
     points = np.array([p.xyz for p in reconstruction.points3D.values()], np.float64).reshape(-1, 3)
     colours = np.array([p.color for p in reconstruction.points3D.values()], np.float32).reshape(-1, 3) / 255.0
     require_finite(points, model_dir, "point coordinate")

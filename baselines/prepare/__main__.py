@@ -17,7 +17,7 @@ os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
 os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
 
 from .errors import PrepareError
-from .pipeline import PrepareOptions, prepare, summary_lines
+from .pipeline import FRAME_BUDGET, PrepareOptions, prepare, summary_lines
 from .sfm import CAMERA_MODELS, SfmOptions
 
 
@@ -35,7 +35,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("source", type=Path, help="a video file (any format OpenCV reads) or a folder of JPG/PNG frames")
     parser.add_argument("-o", "--output", type=Path, required=True, help="dataset folder to write, e.g. data/custom/NAME")
     parser.add_argument("--fps", type=float, help="keep at most this many frames per second (videos)")
-    parser.add_argument("--max-frames", type=int, help="keep at most this many frames, evenly spread")
+    parser.add_argument("--max-frames", type=int, default=FRAME_BUDGET,
+                        help=f"keep at most this many frames, evenly spread (default {FRAME_BUDGET}: "
+                             "a few minutes of SfM on 2 cores)")
     parser.add_argument("--size", type=int, default=640, help="frame width in pixels (never upscaled; default 640)")
     parser.add_argument("--masks", default="auto",
                         help="auto (estimate motion masks), none, or a folder of masks (non-zero = moving)")

@@ -39,6 +39,7 @@ BORDER_DILATION_PX = 3
 # and 0.45 (24 frames, s = 3), versus 0.03 and 0.55 with fixed neighbours at +-2, +-4.
 PAIR_MOTION_PX = 6.0
 THRESHOLD, MIN_ERROR_PX = 3.0, 0.7
+HOMOGRAPHY_SHARE = 0.9  # H explaining this share of F's inliers: F is degenerate, H alone judges
 
 
 @dataclass
@@ -56,21 +57,29 @@ class MaskInfo:
 
 def uncalibrated_error(flow: np.ndarray, step: int = 4) -> np.ndarray:
     """[H, W] px: distance of q + flow(q) from the static-scene prediction of an F or H fitted
-    (RANSAC) to the flow sampled every `step` pixels."""
+    (RANSAC) to the flow sampled every `step` pixels.
+
+    The homography's error is used alone when it explains about as many samples as the
+    fundamental matrix (inliers at least HOMOGRAPHY_SHARE of F's): the camera then mostly turns
+    (or sees a plane), F is degenerate (any epipole fits), and its epipolar lines would pass
+    through a moving object's pixels too, hiding it. Otherwise the smaller of the two errors.
+    """
     h, w = flow.shape[:2]
     x, y = pixel_grid(h, w)
     src = np.stack([x[::step, ::step].ravel(), y[::step, ::step].ravel()], -1)
     dst = src + flow[::step, ::step].reshape(-1, 2)
     q = np.stack([x, y, np.ones_like(x)], -1).astype(np.float64)
     target = np.stack([x + flow[..., 0], y + flow[..., 1], np.ones_like(x)], -1).astype(np.float64)
-    homography, _ = cv2.findHomography(src, dst, cv2.RANSAC, RANSAC_PX)
+    homography, h_inliers = cv2.findHomography(src, dst, cv2.RANSAC, RANSAC_PX)
     error = np.full((h, w), np.inf)
     if homography is not None:
         predicted = q @ homography.T
         predicted = predicted[..., :2] / np.clip(predicted[..., 2:3], 1e-9, None)
         error = np.linalg.norm(target[..., :2] - predicted, axis=-1)
-    fundamental, _ = cv2.findFundamentalMat(src, dst, cv2.FM_RANSAC, RANSAC_PX, 0.999)
-    if fundamental is not None and fundamental.shape == (3, 3):
+    fundamental, f_inliers = cv2.findFundamentalMat(src, dst, cv2.FM_RANSAC, RANSAC_PX, 0.999)
+    h_count = 0 if h_inliers is None or homography is None else int(h_inliers.sum())
+    f_count = 0 if f_inliers is None else int(f_inliers.sum())
+    if fundamental is not None and fundamental.shape == (3, 3) and h_count < HOMOGRAPHY_SHARE * f_count:
         lines = q @ fundamental.T
         norm = np.clip(np.linalg.norm(lines[..., :2], axis=-1), 1e-12, None)
         error = np.minimum(error, np.abs((lines * target).sum(-1)) / norm)

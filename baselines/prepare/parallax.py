@@ -111,9 +111,11 @@ def require_camera_motion(check: ParallaxCheck) -> None:
             "film while walking around the scene (a static tripod shot cannot be reconstructed)")
 
 
-def explain_failure(check: ParallaxCheck, registered: int, total: int, points: int) -> PrepareError:
-    """The error to report when mapping registered too few frames or points, with the likely cause."""
-    what = f"structure from motion failed ({registered} of {total} frames registered, {points} points)"
+def explain_failure(check: ParallaxCheck, registered: int, total: int, points: int,
+                    mapper: str = "incremental") -> PrepareError:
+    """The error to report when mapping registered too few frames or points, with the likely cause.
+    `registered` and `points` must come from the same model (the one `mapper` gave)."""
+    what = f"structure from motion failed (best model, {mapper} mapper: {registered} of {total} frames registered, {points} points)"
     if check.rotation_only:
         return PrepareError(f"{what}: the camera only rotates (a homography explains "
                             f"{min(check.homography_inliers):.0%} of the motion), so depth cannot be triangulated",

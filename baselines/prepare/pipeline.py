@@ -22,12 +22,21 @@ from .frames import extract_frames, probe_source
 from .masks import colmap_mask, motion_masks
 from .parallax import explain_failure, measure_parallax, require_camera_motion
 from .report import model_statistics, summary_lines, write_report
-from .sfm import CAMERA_MODELS, SfmOptions, extract_features, map_frames, match_frames, read_model
+from .sfm import (CAMERA_MODELS, SfmOptions, better_model, extract_features, global_map_frames, map_frames,
+                  match_frames, model_quality, read_model)
 
 WORK_DIR = ".prepare"
 MIN_REGISTERED = 3  # fewer registered frames, or fewer 3D points, is a failed reconstruction
 MIN_POINTS = 20
+# default frame budget: a clip of 50-90 frames is kept whole, a longer video thinned evenly so
+# that masks + SfM stay within a few minutes on 2 cores at 320-480 px (the mapping grows
+# faster than linearly with the frame count)
+FRAME_BUDGET = 80
 BEST_MODEL = "best"
+GLOBAL_MODELS = "global_models"
+# incremental mapping registering fewer than this fraction of the frames calls the global mapper:
+# a casual clip whose incremental model split in two (a fast pan, a blurred stretch) is the case
+GLOBAL_FALLBACK_FRACTION = 0.8
 
 
 @dataclass
@@ -37,7 +46,7 @@ class PrepareOptions:
     source: Path
     output: Path
     fps: float | None = None
-    max_frames: int | None = None
+    max_frames: int | None = FRAME_BUDGET
     width: int | None = 640  # --size
     masks: str = "auto"
     sfm: SfmOptions = field(default_factory=SfmOptions)
@@ -90,9 +99,14 @@ def _masks_stage(options: PrepareOptions, cache: StageCache, key: str, names: li
 
 def _sfm_stages(options: PrepareOptions, cache: StageCache, masks_key: str, names: list[str],
                 colmap_masks: Path | None, work: Path):
-    """(largest model or None, verified pairs): features, matching and mapping, each reused when done.
+    """(chosen model or None, verified pairs, mapper info): features, matching and mapping, each
+    reused when done.
 
-    pycolmap writes every model to `models/<k>`; the largest is also kept as `models/best`.
+    pycolmap writes every incremental model to `models/<k>`; when the largest registers fewer
+    than GLOBAL_FALLBACK_FRACTION of the frames, the global mapper runs on the same database
+    (`global_models/<k>`) and the better model (`sfm.better_model`) is kept as `models/best`.
+    Mapper info: {"used": "incremental" | "global", "incremental": [frames, error px],
+    "global": [frames, error px] or None when it did not run}.
     """
     database, models_dir, frame_dir = work / "database.db", work / "models", work / "frames"
     sfm = options.sfm
@@ -107,17 +121,25 @@ def _sfm_stages(options: PrepareOptions, cache: StageCache, masks_key: str, name
     else:
         verified = match_frames(database, sfm, options.progress)
         cache.finish("matches", matches_key, {"verified_pairs": verified})
-    mapping_key = cache.key(matches_key, sfm.as_dict())
+    mapping_key = cache.key(matches_key, sfm.as_dict(), GLOBAL_FALLBACK_FRACTION)
     best_dir = models_dir / BEST_MODEL
     if cache.done("mapping", mapping_key) and best_dir.is_dir():
-        return read_model(best_dir), verified
+        return read_model(best_dir), verified, cache.extra("mapping")
     shutil.rmtree(models_dir, ignore_errors=True)
+    shutil.rmtree(work / GLOBAL_MODELS, ignore_errors=True)
     model = map_frames(database, frame_dir, models_dir, len(names), sfm, options.progress)
+    mapper = {"used": "incremental", "incremental": list(model_quality(model)), "global": None}
+    if model_quality(model)[0] < GLOBAL_FALLBACK_FRACTION * len(names):
+        other = global_map_frames(database, frame_dir, work / GLOBAL_MODELS, sfm, options.progress)
+        mapper["global"] = list(model_quality(other))
+        if better_model(model, other):
+            model, mapper["used"] = other, "global"
     if model is not None:
         best_dir.mkdir(parents=True)
         model.write(str(best_dir))
-    cache.finish("mapping", mapping_key)
-    return model, verified
+        model = read_model(best_dir)  # the model as written: what the dataset and the messages describe
+    cache.finish("mapping", mapping_key, mapper)
+    return model, verified, mapper
 
 
 def _dropped(names: list[str], registered: set[str], models_dir: Path) -> list[dict]:
@@ -166,12 +188,12 @@ def prepare(options: PrepareOptions) -> dict:
     masks_key = cache.key(frames_key, masks_source)
     masks, mask_info, colmap_masks = _masks_stage(options, cache, masks_key, names, images,
                                                    parallax.frame_motion_px, work)
-    model, verified = _sfm_stages(options, cache, masks_key, names, colmap_masks, work)
-    registered_count = 0 if model is None else int(model.num_reg_images())
-    if registered_count < MIN_REGISTERED or model.num_points3D() < MIN_POINTS:
-        raise explain_failure(parallax, registered_count, len(names), 0 if model is None else model.num_points3D())
+    model, verified, mapper = _sfm_stages(options, cache, masks_key, names, colmap_masks, work)
+    registered = [] if model is None else sorted(image.name for image in model.images.values() if image.has_pose)
+    points = 0 if model is None else int(model.num_points3D())
+    if len(registered) < MIN_REGISTERED or points < MIN_POINTS:  # counted on the one model described
+        raise explain_failure(parallax, len(registered), len(names), points, mapper["used"])
 
-    registered = sorted(image.name for image in model.images.values() if image.has_pose)
     scale = rescale(model)
     times = frame_times(names)
     write_dataset(out, model, frame_dir, registered, times, masks)
@@ -183,7 +205,7 @@ def prepare(options: PrepareOptions) -> dict:
         "registered": registered, "scale_applied": scale, "median_point_depth": MEDIAN_DEPTH,
         "dropped": _dropped(names, set(registered), work / "models"),
         "times": {n: times[n] for n in registered},
-        "verified_pairs": verified, "masks": mask_info, "parallax": parallax.as_dict(),
+        "verified_pairs": verified, "mapper": mapper, "masks": mask_info, "parallax": parallax.as_dict(),
         "options": {"fps": options.fps, "max_frames": options.max_frames, "size": options.width,
                     "masks": options.masks, "sfm": options.sfm.as_dict()},
         "reused_stages": list(cache.reused), "wall_seconds": round(time.perf_counter() - start, 2),

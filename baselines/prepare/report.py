@@ -27,12 +27,25 @@ def write_report(out: Path, report: dict) -> Path:
     return path
 
 
+def _mapper_line(mapper: dict | None) -> str:
+    """Which mapper gave the model, and what each one registered (frames, error)."""
+    if not mapper:
+        return "incremental"
+    parts = [f"{mapper['used']} kept"]
+    for name in ("incremental", "global"):
+        if mapper.get(name) is not None:
+            frames, error = mapper[name]
+            parts.append(f"{name} {frames} frames" + (f" at {error:.3f} px" if frames else ""))
+    return "; ".join(parts) if mapper.get("global") is not None else f"{mapper['used']} ({parts[1]})"
+
+
 def summary_lines(report: dict) -> list[str]:
     """Human summary of a report (printed at the end of a run)."""
     lines = [f"prepare: {report['registered_frames']}/{report['extracted_frames']} frames registered, "
              f"mean reprojection error {report['mean_reprojection_error_px']:.3f} px, "
              f"{report['points']} points, camera {report['camera']['model']} "
              f"f={report['camera']['params'][0]:.1f} px ({report['camera']['width']}x{report['camera']['height']})",
+             f"  mapper: {_mapper_line(report.get('mapper'))}",
              f"  masks: {report['masks']['source']} (mean coverage {report['masks']['mean_coverage']:.1%})"]
     dropped = report["dropped"]
     if dropped:

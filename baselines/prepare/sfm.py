@@ -4,6 +4,11 @@
     extract_features(database, image_dir, names, mask_dir, options)     # one shared camera
     match_frames(database, options)                                      # neighbours only, no loop closure
     model = map_frames(database, image_dir, model_dir, options)          # largest model, or None
+    model = global_map_frames(database, image_dir, other_dir, options)   # GLOMAP on the same database
+
+Mapping is incremental first; the pipeline runs the global mapper (pycolmap's `global_mapping`,
+GLOMAP: rotation averaging then global positioning) when the incremental model leaves too many
+frames out, and keeps the better of the two (`better_model`).
 
 Video frames share one camera (`CameraMode.SINGLE`); pairs are matched only within `overlap`
 frames of each other (sequential matching with loop detection off: no vocabulary tree needed).
@@ -127,6 +132,44 @@ def map_frames(database: Path, image_dir: Path, model_root: Path, total: int, op
     if not models:
         return None
     return max(models.values(), key=lambda m: m.num_reg_images())
+
+
+def global_map_frames(database: Path, image_dir: Path, model_root: Path, options: SfmOptions,
+                      progress: bool = True):
+    """Global mapping (GLOMAP) into `model_root/<k>`; returns the model with most frames, or None.
+
+    A failure of the global mapper returns None (the incremental model stands), not an error."""
+    import pycolmap
+
+    model_root.mkdir(parents=True, exist_ok=True)
+    pipeline = pycolmap.GlobalPipelineOptions()
+    pipeline.num_threads = options.threads
+    pipeline.random_seed = options.seed
+    pipeline.min_model_size = 3
+    pipeline.mapper.num_threads = options.threads
+    pipeline.mapper.random_seed = options.seed
+    with quiet_colmap_logs(3), tqdm(total=1, desc="global mapping", unit="stage", disable=not progress) as bar:
+        try:
+            models = pycolmap.global_mapping(database, image_dir, model_root, options=pipeline)
+        except Exception:  # GLOMAP raises on view graphs it cannot solve: keep the incremental model
+            models = {}
+        bar.update(1)
+    if not models:
+        return None
+    return max(models.values(), key=lambda m: m.num_reg_images())
+
+
+def model_quality(model) -> tuple[int, float]:
+    """(registered frames, mean reprojection error px) of a model; (0, inf) for None."""
+    if model is None or model.num_reg_images() == 0:
+        return 0, float("inf")
+    return int(model.num_reg_images()), float(model.compute_mean_reprojection_error())
+
+
+def better_model(first, second) -> bool:
+    """True when `second` is better than `first`: more registered frames, then lower reprojection error."""
+    (count_a, error_a), (count_b, error_b) = model_quality(first), model_quality(second)
+    return count_b > count_a or (count_b == count_a and count_b > 0 and error_b < error_a)
 
 
 def read_model(model_dir: Path):
