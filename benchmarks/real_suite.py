@@ -3,6 +3,7 @@
     python benchmarks/real_suite.py [--captures nvidia_balloon1,nvidia_balloon1_colmap,davis_lady_running]
                                     [--methods baseline,reflow] [--data data/real] [--out output/real] [--jobs 1]
                                     [--coarse_iterations 300] [--iterations 2000] [--seed 0]
+                                    [--resolution NAME=R,...] [--chunk-seconds S]
                                     [--images docs/images] [-- extra train.py flags]
     python benchmarks/real_suite.py --fetch-instructions      # where each capture comes from
     python benchmarks/real_suite.py --setup NAME --clone DIR  # extract (and prepare) one capture
@@ -18,6 +19,14 @@ canonical space built from triangulated optical flow instead of the dataset's `d
 succeeded, with the command and the code's commit); a folder without it is a torn run and is
 redone, and a folder trained with another command stops the suite (use a fresh `--out` after
 changing the schedule or the code you want to measure).
+
+`--chunk-seconds S` (machines that allow short calls only; `benchmarks/gpu_real_suite.sh`): the
+runs go one at a time; after about S seconds of the call the run in training is stopped with
+SIGTERM (train.py checkpoints the iteration it is at and exits 143), the command exits 3, and the
+next call continues that run from its latest `chkpnt_*.pth` (`--start_checkpoint`, same command,
+same code version: `real_chunks.json` records them with each call's seconds, whose sum is the
+run's train_s). A run is never cut before its training loop starts or after it ends (final
+evaluation and renders).
 
 In-mask metrics: the dataset's masks when every held-out view has one (`motion_masks/`, e.g.
 prepare's auto masks, or evaluation-only ground truth: NVIDIA `gt/motion_masks/`, panoptic `seg/`
@@ -397,15 +406,18 @@ def canonical_table(rows: dict[str, dict[str, dict]]) -> str:
     return "\n".join(head + lines)
 
 
-def run_chunked(jobs: list, seconds: float, train: Callable[[object, float], Path]) -> list[Path | str]:
+def run_chunked(jobs: list, seconds: float, train: Callable[[object, float], Path],
+                min_start: float = 60.0) -> list[Path | str]:
     """Advance `jobs` in order within one call of about `seconds`: done runs are skipped, the first
     unfinished one continues; raises ChunkPending when the time is spent before all are done.
-    `train(job, seconds_left)` is run_one with chunk_seconds (it raises ChunkPending itself)."""
+    `train(job, seconds_left)` is run_one with chunk_seconds (it raises ChunkPending itself). No run
+    is started or continued with less than `min_start` seconds left (a start-up, e.g. ReFlow's
+    canonical space, runs before the first iteration and cannot be cut); a done run costs nothing."""
     deadline = time.monotonic() + seconds
     runs: list[Path | str] = []
     for job in jobs:
         left = deadline - time.monotonic()
-        if left <= 0:
+        if left < min(min_start, seconds) or left <= 0:
             raise ChunkPending(f"{len(jobs) - len(runs)} run(s) left after {seconds:.0f} s; call again to continue")
         try:
             runs.append(train(job, left))

@@ -282,3 +282,24 @@ def test_run_chunked_skips_done_runs_and_stops_when_the_call_s_time_is_spent():
     with pytest.raises(real_suite.ChunkPending, match="3 run"):
         real_suite.run_chunked(["a", "b", "c"], 0.0, train)        # no time left: nothing starts
     assert real_suite.run_chunked(["a", "c"], 100.0, train) == [Path("a"), Path("c")]
+
+
+def test_a_chunked_run_is_continued_only_with_its_own_command_and_code(tmp_path, monkeypatch):
+    capture = CAPTURES["nvidia_balloon1"]
+    schedule = {"coarse_iterations": 3, "iterations": 5, "seed": 0}
+    run = tmp_path / "out" / capture.name / "baseline"
+    command = real_suite.train_command(capture, "baseline", tmp_path / capture.name, run, schedule, [])
+    run.mkdir(parents=True)
+    (run / "chkpnt_coarse_3.pth").write_bytes(b"")
+    (run / "chkpnt_fine_2.pth").write_bytes(b"")
+    (run / real_suite.CHUNKS_FILE).write_text(json.dumps({"command": command, "code": "abc", "chunks": []}))
+    assert real_suite.latest_checkpoint(run).name == "chkpnt_fine_2.pth"        # fine after coarse
+    monkeypatch.setattr(real_suite.subprocess, "Popen", lambda *a, **k: pytest.fail("must not train"))
+    monkeypatch.setattr(real_suite, "code_version", lambda: "def")
+    with pytest.raises(real_suite.SuiteError, match="started with code abc"):
+        real_suite.run_one(capture, "baseline", tmp_path, tmp_path / "out", schedule, [], 1, chunk_seconds=10)
+    monkeypatch.setattr(real_suite, "code_version", lambda: "abc")
+    with pytest.raises(real_suite.SuiteError, match="started with another command"):
+        real_suite.run_one(capture, "baseline", tmp_path, tmp_path / "out", dict(schedule, iterations=6), [], 1,
+                           chunk_seconds=10)
+    assert (run / "chkpnt_fine_2.pth").exists()                               # nothing was cleared
