@@ -3,6 +3,7 @@
     python benchmarks/real_suite.py [--captures nvidia_balloon1,nvidia_balloon1_colmap,davis_lady_running]
                                     [--methods baseline,reflow] [--data data/real] [--out output/real] [--jobs 1]
                                     [--coarse_iterations 300] [--iterations 2000] [--seed 0]
+                                    [--resolution NAME=R,...] [--chunk-seconds S]
                                     [--images docs/images] [-- extra train.py flags]
     python benchmarks/real_suite.py --fetch-instructions      # where each capture comes from
     python benchmarks/real_suite.py --setup NAME --clone DIR  # extract (and prepare) one capture
@@ -19,6 +20,14 @@ succeeded, with the command and the code's commit); a folder without it is a tor
 redone, and a folder trained with another command stops the suite (use a fresh `--out` after
 changing the schedule or the code you want to measure).
 
+`--chunk-seconds S` (machines that allow short calls only; `benchmarks/gpu_real_suite.sh`): the
+runs go one at a time; after about S seconds of the call the run in training is stopped with
+SIGTERM (train.py checkpoints the iteration it is at and exits 143), the command exits 3, and the
+next call continues that run from its latest `chkpnt_*.pth` (`--start_checkpoint`, same command,
+same code version: `real_chunks.json` records them with each call's seconds, whose sum is the
+run's train_s). A run is never cut before its training loop starts or after it ends (final
+evaluation and renders).
+
 In-mask metrics: the dataset's masks when every held-out view has one (evaluation-only ground
 truth first: NVIDIA and prepared clips' `gt/motion_masks/`, e.g. the DAVIS annotations, panoptic
 `seg/` carved into the test cameras as a visual hull; else `motion_masks/`, e.g. prepare's auto
@@ -34,14 +43,18 @@ writes it with the raw figures to `OUT/real_suite.md` / `OUT/real_suite.json`.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -49,7 +62,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.real_captures import (DEFAULT_DATA, Capture, CaptureError, dataset_dir,  # noqa: E402
+from benchmarks.real_captures import (CAPTURES, DEFAULT_DATA, Capture, CaptureError, dataset_dir,  # noqa: E402
                                       fetch_instructions, require_ready, select, setup)
 
 METHODS = {
@@ -60,12 +73,18 @@ METHODS = {
 }
 DEFAULT_METHODS = ("baseline", "reflow")
 DONE_FILE = "real_done.json"
+CHUNKS_FILE = "real_chunks.json"  # a chunked run: its command, code and each call's seconds
+INTERRUPTED_RC = 143  # train.py after SIGTERM: checkpointed and stopped (baselines/cli_exit.py)
 COLUMNS = ("PSNR", "SSIM", "PSNR-mask", "PSNR-outside", "mask %", "train_s", "code")
 NEAR_PLANE = 0.01  # the rasterizer's default near plane (baselines/render/api.py)
 
 
 class SuiteError(RuntimeError):
     """A run folder cannot be reused as it is."""
+
+
+class ChunkPending(SuiteError):
+    """A chunked run (--chunk-seconds) stopped at a checkpoint; the next call continues it."""
 
 
 class TrainingFailed(SuiteError):
@@ -94,9 +113,14 @@ def train_command(capture: Capture, method: str, source: Path, run: Path, schedu
 
 
 def run_one(capture: Capture, method: str, data_root: Path, out: Path, schedule: dict, extra: list[str],
-            threads: int) -> Path:
-    """Train one (capture, method) unless its run folder is done; returns the run folder."""
-    run = out / capture.name / method
+            threads: int, run: Path | None = None, chunk_seconds: float | None = None) -> Path:
+    """Train one (capture, method) unless its run folder (default OUT/<capture>/<method>) is done;
+    returns the run folder. Its lock and log sit next to it: <run>.lock, <run>_train.log.
+
+    With `chunk_seconds`, the training is stopped (SIGTERM: train.py checkpoints the iteration it
+    is at and exits) once it has trained that long, and ChunkPending is raised; the next call
+    continues from the latest checkpoint (`--start_checkpoint`) instead of redoing the folder."""
+    run = out / capture.name / method if run is None else run
     command = train_command(capture, method, dataset_dir(capture, data_root), run, schedule, extra)
     done = run / DONE_FILE
     if done.is_file():
@@ -105,28 +129,91 @@ def run_one(capture: Capture, method: str, data_root: Path, out: Path, schedule:
             raise SuiteError(f"{run} was trained with another command ({' '.join(stored.get('command', []))}); "
                              "use a fresh --out or delete that folder")
         return run
-    lock = run.parent / f"{method}.lock"
+    lock = run.parent / f"{run.name}.lock"
+    log_file = run.parent / f"{run.name}_train.log"
     owner = _live_owner(lock)
     if owner is not None:
         raise SuiteError(f"{run} is being trained by process {owner} (another real_suite.py); wait for it")
-    if run.exists():  # torn: a killed or failed earlier attempt
-        shutil.rmtree(run)
-    run.mkdir(parents=True)
+    chunks_file = run / CHUNKS_FILE
+    checkpoint = latest_checkpoint(run) if chunk_seconds is not None and chunks_file.is_file() else None
+    if checkpoint is not None:  # a chunked run stopped at a checkpoint: continue it with the same command
+        chunks = json.loads(chunks_file.read_text())
+        if chunks["command"] != command:
+            raise SuiteError(f"{run} was started with another command ({' '.join(chunks['command'])}); "
+                             "use a fresh --out or delete that folder")
+        code = chunks["code"]
+        if code_version() != code:
+            raise SuiteError(f"{run} was started with code {code}, the checkout is now {code_version()}; "
+                             "resume with that code, or delete the folder")
+    else:
+        if run.exists():  # torn: a killed or failed earlier attempt
+            shutil.rmtree(run)
+        run.mkdir(parents=True)
+        code = code_version()  # the code that trains, before anyone edits the checkout
+        chunks = {"command": command, "code": code, "chunks": []}
     lock.write_text(str(os.getpid()))
-    code = code_version()  # the code that trains, before anyone edits the checkout
     env = dict(os.environ, OMP_NUM_THREADS=str(threads))
-    with open(run.parent / f"{method}_train.log", "w") as log:
-        result = subprocess.run([sys.executable, *command], cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
+    if chunk_seconds is None:
+        with open(log_file, "w") as log:
+            result = subprocess.run([sys.executable, *command], cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
+        returncode = result.returncode
+    else:
+        resume = ["--start_checkpoint", str(checkpoint)] if checkpoint is not None else []
+        with open(log_file, "a") as log:
+            returncode, seconds = train_chunk([sys.executable, *command, *resume], env, log, run / "train_log.jsonl",
+                                              chunk_seconds)
+        chunks["chunks"].append({"from": str(checkpoint) if checkpoint else None, "seconds": seconds,
+                                 "returncode": returncode})
+        (run / CHUNKS_FILE).write_text(json.dumps(chunks, indent=1))
     lock.unlink(missing_ok=True)
-    if result.returncode != 0:
-        lines = (run.parent / f"{method}_train.log").read_text().strip().splitlines()
+    if chunk_seconds is not None and returncode == INTERRUPTED_RC and latest_checkpoint(run) is not None:
+        raise ChunkPending(f"{run}: stopped at {latest_checkpoint(run).name} after {chunk_seconds:.0f} s; "
+                           "call again to continue")
+    if returncode != 0:
+        lines = log_file.read_text().strip().splitlines()
         errors = [line for line in lines if line.startswith("error:")]  # train.py's one-line reason
         reason = errors[-1] if errors else " | ".join(lines[-3:])
-        raise TrainingFailed(f"train.py exited {result.returncode}: {reason} (log: {run.parent / f'{method}_train.log'})")
+        raise TrainingFailed(f"train.py exited {returncode}: {reason} (log: {log_file})")
     tmp = run / (DONE_FILE + ".tmp")
     tmp.write_text(json.dumps({"command": command, "code": code}, indent=1))
     tmp.replace(done)
     return run
+
+
+def latest_checkpoint(run: Path) -> Path | None:
+    """The run's chkpnt_<stage>_<N>.pth furthest into training (fine after coarse), None when none."""
+    found = []
+    for path in run.glob("chkpnt_*_*.pth"):
+        _, stage, number = path.stem.split("_", 2)
+        if stage in ("coarse", "fine") and number.isdigit():
+            found.append(((stage == "fine", int(number)), path))
+    return max(found)[1] if found else None
+
+
+def train_chunk(command: list[str], env: dict, log, train_log: Path, seconds: float,
+                poll: float = 0.1) -> tuple[int, float]:
+    """Run train.py; once `seconds` have passed AND its training loop is running (a new "iter" line
+    in `train_log`: its SIGTERM handler is installed) AND it has not finished training ("train_end"),
+    send SIGTERM, which makes it checkpoint the current iteration and exit INTERRUPTED_RC.
+    Returns (exit status, wall seconds)."""
+    offset = train_log.stat().st_size if train_log.is_file() else 0  # earlier chunks' lines
+    start = time.monotonic()
+    process = subprocess.Popen(command, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
+    signalled = False
+    while process.poll() is None:
+        time.sleep(poll)
+        if signalled or time.monotonic() - start < seconds or not train_log.is_file():
+            continue
+        with open(train_log, "rb") as handle:
+            handle.seek(offset)
+            new = handle.read()
+        if b'"kind": "train_end"' in new:  # training is over: let the evaluation finish
+            process.wait()
+            break
+        if b'"kind": "iter"' in new:
+            process.send_signal(signal.SIGTERM)
+            signalled = True
+    return process.wait(), time.monotonic() - start
 
 
 def _live_owner(lock: Path) -> int | None:
@@ -260,6 +347,9 @@ def summarise(run: Path, masks: list[np.ndarray], scene) -> dict:
     key = max((k for k in results if k.startswith("ours_")), key=lambda k: int(k.split("_")[1]))
     log = [json.loads(line) for line in (run / "train_log.jsonl").read_text().splitlines() if line.strip()]
     end = [r for r in log if r.get("kind") == "train_end"]
+    chunks = run / CHUNKS_FILE
+    if chunks.is_file():  # a chunked run: every call's wall seconds (start-up included)
+        end = [{"wall_seconds": sum(c["seconds"] for c in json.loads(chunks.read_text())["chunks"])}]
     row = {"PSNR": results[key]["PSNR"], "SSIM": results[key]["SSIM"], **masked_metrics(run, masks),
            "mask %": 100.0 * float(np.mean([m.mean() for m in masks])) if masks else None,
            "train_s": end[-1].get("wall_seconds") if end else None,
@@ -317,6 +407,41 @@ def canonical_table(rows: dict[str, dict[str, dict]]) -> str:
     return "\n".join(head + lines)
 
 
+def run_chunked(jobs: list, seconds: float, train: Callable[[object, float], Path],
+                min_start: float = 60.0) -> list[Path | str]:
+    """Advance `jobs` in order within one call of about `seconds`: done runs are skipped, the first
+    unfinished one continues; raises ChunkPending when the time is spent before all are done.
+    `train(job, seconds_left)` is run_one with chunk_seconds (it raises ChunkPending itself). No run
+    is started or continued with less than `min_start` seconds left (a start-up, e.g. ReFlow's
+    canonical space, runs before the first iteration and cannot be cut); a done run costs nothing."""
+    deadline = time.monotonic() + seconds
+    runs: list[Path | str] = []
+    for job in jobs:
+        left = deadline - time.monotonic()
+        if left < min(min_start, seconds) or left <= 0:
+            raise ChunkPending(f"{len(jobs) - len(runs)} run(s) left after {seconds:.0f} s; call again to continue")
+        try:
+            runs.append(train(job, left))
+        except TrainingFailed as failure:
+            print(f"error: {failure}", file=sys.stderr)
+            runs.append(str(failure))
+    return runs
+
+
+def parse_resolutions(text: str | None, captures: list[Capture]) -> dict[str, int]:
+    """`--resolution name=r,...` -> {capture: r} for `captures`; unnamed ones keep the registry's resolution,
+    registry names not among `captures` are accepted and unused."""
+    chosen = {c.name: c.resolution for c in captures}
+    for item in filter(None, (text or "").split(",")):
+        name, _, value = item.partition("=")
+        if name not in CAPTURES or not value.isdigit() or int(value) < 1:
+            raise CaptureError(f"--resolution {item!r}: want NAME=R with NAME a registry capture "
+                               f"({', '.join(CAPTURES)}) and R >= 1")
+        if name in chosen:
+            chosen[name] = int(value)
+    return chosen
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--captures", help="comma list of registry names (default: all)")
@@ -329,6 +454,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--coarse_iterations", type=int, default=300)
     parser.add_argument("--iterations", type=int, default=2000)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--resolution", help="NAME=R,...: train.py -r per capture (default: the registry's)")
+    parser.add_argument("--chunk-seconds", type=float, metavar="S",
+                        help="train at most about S seconds in this call, then checkpoint and exit 3; the next "
+                             "call continues (for machines that allow short calls only; --jobs 1)")
     parser.add_argument("--fetch-instructions", action="store_true", help="print how to fetch each capture, then exit")
     parser.add_argument("--setup", metavar="NAME", help="extract (and prepare) capture NAME from --clone, then exit")
     parser.add_argument("--clone", type=Path, help="a clone (plain or bare) of the capture's repository")
@@ -355,6 +484,8 @@ def main(argv: list[str] | None = None) -> int:
         unknown = [m for m in methods if m not in METHODS]
         if unknown:
             raise CaptureError(f"unknown method(s) {unknown}; known: {', '.join(METHODS)}")
+        resolutions = parse_resolutions(args.resolution, captures)
+        captures = [dataclasses.replace(c, resolution=resolutions[c.name]) for c in captures]
         require_ready(captures, args.data)
     except CaptureError as error:
         print(f"error: {error}", file=sys.stderr)
@@ -371,8 +502,15 @@ def main(argv: list[str] | None = None) -> int:
             return str(failure)
 
     try:
-        with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-            runs = list(pool.map(attempt, jobs))
+        if args.chunk_seconds is not None:
+            runs = run_chunked(jobs, args.chunk_seconds, lambda job, seconds: run_one(
+                job[0], job[1], args.data, args.out, schedule, extra, threads, chunk_seconds=seconds))
+        else:
+            with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+                runs = list(pool.map(attempt, jobs))
+    except ChunkPending as pending:
+        print(f"pending: {pending}", file=sys.stderr)
+        return 3
     except SuiteError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

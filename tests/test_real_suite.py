@@ -223,3 +223,83 @@ def test_a_failed_training_is_a_table_row_and_leaves_no_done_marker(tmp_path, mo
     failed = [line for line in text.splitlines() if "| reflow |" in line][0]
     assert "FAILED: train.py exited 2: a / b" in failed
     assert failed.count("|") == text.splitlines()[0].count("|")   # as many cells as the header
+
+
+def _tiny_capture(tiny_scene: Path, root: Path) -> Capture:
+    """A registry-like capture whose dataset is the simulator's tiny NVIDIA-layout scene."""
+    (root / "data").mkdir(parents=True)
+    (root / "data" / "tiny").symlink_to(tiny_scene)
+    return Capture(name="tiny", family="nvidia", repo="x/y", commit="0" * 40, folder=".", what="tiny", resolution=1)
+
+
+def test_a_chunked_run_resumes_from_its_checkpoint_and_ends_as_an_uninterrupted_one(tiny_scene, tmp_path):
+    """--chunk-seconds: the first call is stopped (SIGTERM -> checkpoint) at its first logged
+    iteration, the second continues from that checkpoint; densification runs across the cut. The
+    result equals one uninterrupted run (the trainer's exact-resume guarantee: RNG, sampler and
+    optimizer state are in the checkpoint)."""
+    from plyfile import PlyData
+
+    capture = _tiny_capture(tiny_scene, tmp_path)
+    schedule = {"coarse_iterations": 20, "iterations": 120, "seed": 0}
+    extra = ["--configs", str(real_suite.ROOT / "arguments" / "synthetic" / "default.py"), "--log_every", "1",
+             "--densify_from_iter", "5", "--densification_interval", "10", "--densify_until_iter", "100",
+             "--pruning_from_iter", "5", "--pruning_interval", "10", "--position_lr_max_steps", "120"]
+    args = (capture, "baseline", tmp_path / "data")
+    whole = real_suite.run_one(*args, tmp_path / "whole", schedule, extra, 1)
+    with pytest.raises(real_suite.ChunkPending, match="call again"):
+        real_suite.run_one(*args, tmp_path / "chunked", schedule, extra, 1, chunk_seconds=0)
+    run = tmp_path / "chunked" / "tiny" / "baseline"
+    assert not (run / real_suite.DONE_FILE).exists() and real_suite.latest_checkpoint(run) is not None
+    assert real_suite.run_one(*args, tmp_path / "chunked", schedule, extra, 1, chunk_seconds=1e6) == run
+    chunks = json.loads((run / real_suite.CHUNKS_FILE).read_text())["chunks"]
+    assert [c["returncode"] for c in chunks] == [real_suite.INTERRUPTED_RC, 0] and chunks[1]["from"]
+    assert json.loads((run / real_suite.DONE_FILE).read_text())["command"] == \
+        json.loads((whole / real_suite.DONE_FILE).read_text())["command"][:4] + \
+        [str(run)] + json.loads((whole / real_suite.DONE_FILE).read_text())["command"][5:]
+    ply = "point_cloud/iteration_120/point_cloud.ply"
+    a, b = PlyData.read(str(whole / ply))["vertex"], PlyData.read(str(run / ply))["vertex"]
+    assert a.count == b.count
+    for name in ("x", "y", "z", "opacity", "f_dc_0"):
+        np.testing.assert_allclose(np.asarray(b[name]), np.asarray(a[name]), rtol=1e-4, atol=1e-5, err_msg=name)
+    psnr = [json.loads((r / "results.json").read_text())["ours_120"]["PSNR"] for r in (whole, run)]
+    assert psnr[1] == pytest.approx(psnr[0], abs=1e-3)
+    summary = real_suite.summarise(run, [], None)
+    assert summary["train_s"] == pytest.approx(sum(c["seconds"] for c in chunks))
+
+
+def test_run_chunked_skips_done_runs_and_stops_when_the_call_s_time_is_spent():
+    order = []
+
+    def train(job, left):
+        order.append((job, left > 0))
+        if job == "b":
+            raise real_suite.ChunkPending("b: call again")
+        return Path(job)
+
+    with pytest.raises(real_suite.ChunkPending, match="b: call again"):
+        real_suite.run_chunked(["a", "b", "c"], 100.0, train)
+    assert order == [("a", True), ("b", True)]                    # c not started in this call
+    with pytest.raises(real_suite.ChunkPending, match="3 run"):
+        real_suite.run_chunked(["a", "b", "c"], 0.0, train)        # no time left: nothing starts
+    assert real_suite.run_chunked(["a", "c"], 100.0, train) == [Path("a"), Path("c")]
+
+
+def test_a_chunked_run_is_continued_only_with_its_own_command_and_code(tmp_path, monkeypatch):
+    capture = CAPTURES["nvidia_balloon1"]
+    schedule = {"coarse_iterations": 3, "iterations": 5, "seed": 0}
+    run = tmp_path / "out" / capture.name / "baseline"
+    command = real_suite.train_command(capture, "baseline", tmp_path / capture.name, run, schedule, [])
+    run.mkdir(parents=True)
+    (run / "chkpnt_coarse_3.pth").write_bytes(b"")
+    (run / "chkpnt_fine_2.pth").write_bytes(b"")
+    (run / real_suite.CHUNKS_FILE).write_text(json.dumps({"command": command, "code": "abc", "chunks": []}))
+    assert real_suite.latest_checkpoint(run).name == "chkpnt_fine_2.pth"        # fine after coarse
+    monkeypatch.setattr(real_suite.subprocess, "Popen", lambda *a, **k: pytest.fail("must not train"))
+    monkeypatch.setattr(real_suite, "code_version", lambda: "def")
+    with pytest.raises(real_suite.SuiteError, match="started with code abc"):
+        real_suite.run_one(capture, "baseline", tmp_path, tmp_path / "out", schedule, [], 1, chunk_seconds=10)
+    monkeypatch.setattr(real_suite, "code_version", lambda: "abc")
+    with pytest.raises(real_suite.SuiteError, match="started with another command"):
+        real_suite.run_one(capture, "baseline", tmp_path, tmp_path / "out", dict(schedule, iterations=6), [], 1,
+                           chunk_seconds=10)
+    assert (run / "chkpnt_fine_2.pth").exists()                               # nothing was cleared

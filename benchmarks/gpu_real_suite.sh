@@ -1,0 +1,51 @@
+#!/usr/bin/env bash
+# The real-capture benchmark's long schedule on a GPU, in calls of under 10 minutes each:
+#
+#   DATA=/path/to/captures bash benchmarks/gpu_real_suite.sh [suite|convergence] [SECONDS]
+#
+# suite        benchmarks/real_suite.py at the family configs' own schedule (3000 coarse + 14000
+#              fine iterations, arguments/hypernerf/default.py), baseline and ReFlow;
+# convergence  benchmarks/convergence.py, fine budgets $BUDGETS (default 1000,3000,7000,14000)
+#              with the densification schedule scaled to each budget, 3000 coarse iterations.
+# Every capture at its full stored resolution (-r 1; RESOLUTION=NAME=R,... to change), captures
+# $CAPTURES (default nvidia_balloon1,panoptic_basketball; set up with real_suite.py --setup).
+#
+# Each call trains for about SECONDS (default 420) and then stops the run it is in with SIGTERM:
+# train.py checkpoints the iteration it is at and exits, and the script exits 3. Call it again
+# with the same OUT: it skips the finished runs, continues the stopped one from its checkpoint
+# (--start_checkpoint; the trainer's resume is exact: RNG, sampler and optimizer state are in the
+# checkpoint) and goes on. Exit 0 = every run done, the table printed and written to OUT; 1 = done
+# with failed runs in the table; 2 = an input error (one line). Keep 3 minutes between SECONDS and
+# the machine's per-call limit for start-up, the checkpoint, and the final evaluation and renders
+# of a run that ends in the call (they are never cut). OUT (default output/gpu_real_<mode>) holds
+# the run folders and must survive between calls; the figures of each run are in
+# OUT/<capture>/<method>[/fine_<budget>]/results.json, the calls' seconds in real_chunks.json.
+set -u
+MODE=${1:-suite}
+CHUNK=${2:-420}
+DATA=${DATA:-data/real}
+OUT=${OUT:-output/gpu_real_$MODE}
+CAPTURES=${CAPTURES:-nvidia_balloon1,panoptic_basketball}
+RESOLUTION=${RESOLUTION:-nvidia_balloon1=1,panoptic_basketball=1}
+BUDGETS=${BUDGETS:-1000,3000,7000,14000}
+PYTHON=${PYTHON:-python3}
+export PYTHONUNBUFFERED=1
+"$PYTHON" - <<'EOF' || exit 2
+import torch, sys
+if not torch.cuda.is_available():
+    sys.exit("error: no CUDA device visible to torch: this script is for a GPU machine (use real_suite.py on the CPU)")
+print(f"[gpu_real_suite] {torch.cuda.get_device_name(0)}, torch {torch.__version__}")
+EOF
+case $MODE in
+    suite)
+        exec "$PYTHON" benchmarks/real_suite.py --captures "$CAPTURES" --data "$DATA" --out "$OUT" \
+            --resolution "$RESOLUTION" --coarse_iterations 3000 --iterations 14000 \
+            --chunk-seconds "$CHUNK" --images "$OUT/images" ;;
+    convergence)
+        exec "$PYTHON" benchmarks/convergence.py --captures "$CAPTURES" --data "$DATA" --out "$OUT" \
+            --resolution "$RESOLUTION" --coarse_iterations 3000 --budgets "$BUDGETS" \
+            --chunk-seconds "$CHUNK" --plot "$OUT/convergence.png" ;;
+    *)
+        echo "error: mode '$MODE': want suite or convergence" >&2
+        exit 2 ;;
+esac
