@@ -42,6 +42,19 @@ CXX_FLAGS = ("-O3", "-std=c++17", "-shared", "-fPIC", "-ffp-contract=off", "-pth
 COMPILE_TIMEOUT_S = 600
 
 
+OFF_VALUES = frozenset({"0", "false", "off", "no"})  # an environment switch set to one of these turns a kernel off
+
+
+def switched_off_by_env(what: str, *names: str) -> str | None:
+    """Why `what` (e.g. "the compiled projection") is off: the first of the environment variables
+    `names` set to 0/false/off/no, as a reason string; None when none of them is."""
+    for name in names:
+        value = os.environ.get(name, "").strip().lower()
+        if value in OFF_VALUES:
+            return f"{what} is disabled by {name}={os.environ[name]}"
+    return None
+
+
 class KernelUnavailable(RuntimeError):
     """A compiled kernel cannot be built or loaded; the message says why."""
 

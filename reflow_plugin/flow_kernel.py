@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import ctypes
 import logging
-import os
 from pathlib import Path
 
 import torch
@@ -36,7 +35,6 @@ ENV_ALL_KERNELS = "REFLOW4DGS_CPU_KERNEL"
 SOURCE = Path(__file__).resolve().parent / "csrc" / "flow_kernel.cpp"
 ABI_VERSION = 1  # must equal kAbiVersion in the C++ source
 _SUPPORTED_DTYPES = {torch.float32: "f32", torch.float64: "f64"}
-_OFF_VALUES = {"0", "false", "off", "no"}
 
 
 def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
@@ -62,11 +60,7 @@ LIBRARY = native_build.NativeLibrary("flow_kernel", SOURCE, ABI_VERSION, _bind)
 
 def disabled_by_env() -> str | None:
     """The reason the flow kernel is switched off by the environment, or None."""
-    for name in (ENV_SWITCH, ENV_ALL_KERNELS):
-        value = os.environ.get(name, "").strip().lower()
-        if value in _OFF_VALUES:
-            return f"the compiled flow channels are disabled by {name}={os.environ[name]}"
-    return None
+    return native_build.switched_off_by_env("the compiled flow channels", ENV_SWITCH, ENV_ALL_KERNELS)
 
 
 def _inputs(proj_a: Projection, proj_b: Projection) -> list[Tensor]:

@@ -22,7 +22,6 @@ from __future__ import annotations
 import ctypes
 import functools
 import logging
-import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -39,7 +38,6 @@ ENV_ALL_KERNELS = "REFLOW4DGS_CPU_KERNEL"
 SOURCE = Path(__file__).resolve().parent / "csrc" / "plane_kernel.cpp"
 ABI_VERSION = 1  # must equal kAbiVersion in the C++ source
 _SUPPORTED_DTYPES = {torch.float32: "f32", torch.float64: "f64"}
-_OFF_VALUES = {"0", "false", "off", "no"}
 
 
 def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
@@ -65,11 +63,7 @@ LIBRARY = native_build.NativeLibrary("plane_kernel", SOURCE, ABI_VERSION, _bind)
 
 def disabled_by_env() -> str | None:
     """The reason the plane kernel is switched off by the environment, or None."""
-    for name in (ENV_SWITCH, ENV_ALL_KERNELS):
-        value = os.environ.get(name, "").strip().lower()
-        if value in _OFF_VALUES:
-            return f"the compiled plane lookup is disabled by {name}={os.environ[name]}"
-    return None
+    return native_build.switched_off_by_env("the compiled plane lookup", ENV_SWITCH, ENV_ALL_KERNELS)
 
 
 def unusable_reason(table: Tensor, coords_dtype: torch.dtype) -> str | None:

@@ -49,15 +49,11 @@ ISA_CODES = {"auto": 0, "portable": 1, "avx2": 2}
 SOURCE = Path(__file__).resolve().parent / "csrc" / "raster_kernel.cpp"
 ABI_VERSION = 2  # must equal kAbiVersion in the C++ source
 _SUPPORTED_DTYPES = {torch.float32: "f32", torch.float64: "f64"}
-_OFF_VALUES = {"0", "false", "off", "no"}
 
 
 def disabled_by_env() -> str | None:
     """The reason the kernel is switched off by the environment, or None."""
-    value = os.environ.get(ENV_SWITCH, "").strip().lower()
-    if value in _OFF_VALUES:
-        return f"the compiled CPU kernel is disabled by {ENV_SWITCH}={os.environ[ENV_SWITCH]}"
-    return None
+    return native_build.switched_off_by_env("the compiled CPU kernel", ENV_SWITCH)
 
 
 def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import ctypes
 import logging
-import os
 from pathlib import Path
 
 import torch
@@ -40,7 +39,6 @@ ENV_ALL_KERNELS = "REFLOW4DGS_CPU_KERNEL"
 SOURCE = Path(__file__).resolve().parent / "csrc" / "project_kernel.cpp"
 ABI_VERSION = 1  # must equal kAbiVersion in the C++ source
 _SUPPORTED_DTYPES = {torch.float32: "f32", torch.float64: "f64"}
-_OFF_VALUES = {"0", "false", "off", "no"}
 
 
 def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
@@ -66,11 +64,7 @@ LIBRARY = native_build.NativeLibrary("project_kernel", SOURCE, ABI_VERSION, _bin
 
 def disabled_by_env() -> str | None:
     """The reason the projection kernel is switched off by the environment, or None."""
-    for name in (ENV_SWITCH, ENV_ALL_KERNELS):
-        value = os.environ.get(name, "").strip().lower()
-        if value in _OFF_VALUES:
-            return f"the compiled projection is disabled by {name}={os.environ[name]}"
-    return None
+    return native_build.switched_off_by_env("the compiled projection", ENV_SWITCH, ENV_ALL_KERNELS)
 
 
 def unusable_reason(means: Tensor, viewmat: Tensor, K: Tensor) -> str | None:
