@@ -168,17 +168,23 @@ class RunLock:
         else:
             self.created = not self.folder.exists()
         try:
-            self.folder.mkdir(parents=True, exist_ok=True)
+            _make_folder(self.folder)
         except OSError as err:
             raise RunFolderError(f"-m {self.folder}: cannot create it ({err.strerror or err})") from None
         if fcntl is None:
             self.fd = -1
             _held_locks[key] = self
             return self
+        races = 0
         while True:  # the holder removes the file on release: lock a file that is still the path's
             try:
-                self.folder.mkdir(parents=True, exist_ok=True)  # a failed holder may have removed it
+                _make_folder(self.folder)  # a failed holder may have removed it
                 fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            except FileNotFoundError:  # the folder went between the two calls: another run released it
+                races += 1
+                if races < 20:
+                    continue
+                raise RunFolderError(f"cannot create {self.path}: its folder keeps disappearing") from None
             except OSError as err:
                 self._undo_folder()
                 raise RunFolderError(f"cannot create {self.path} ({err.strerror or err})") from None
@@ -224,6 +230,23 @@ class RunLock:
                 self.folder.rmdir()  # only if this run wrote nothing else into it
             except OSError:  # not empty (or gone): the folder stays as it is
                 pass
+
+
+def _make_folder(folder: Path, attempts: int = 20) -> None:
+    """`folder.mkdir(parents=True, exist_ok=True)` that survives another process removing the folder.
+
+    Path.mkdir raises FileExistsError when its mkdir finds the folder but the folder is gone by its
+    is_dir() check: another run's lock released an empty folder it had created (`_undo_folder`)
+    in between. That is no error: the next attempt creates it. A FILE at the path still raises.
+    """
+    for _ in range(attempts - 1):
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            return
+        except FileExistsError:
+            if folder.exists() and not folder.is_dir():  # a file, not a race
+                raise
+    folder.mkdir(parents=True, exist_ok=True)
 
 
 def _read_pid(fd: int) -> int | None:

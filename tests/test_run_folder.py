@@ -196,3 +196,27 @@ def test_implicit_output_folder_is_never_reused_and_a_killed_run_is_named(tmp_pa
     with pytest.raises(RunFolderError, match=r"an unfinished run of --plugin reflow \[full_flow\] \(running, saved fine "
                                              r"iteration 500\).*--start_checkpoint .*chkpnt_fine_500.pth to continue"):
         check_run_folder(base, RunIdentity.of([], {}))
+
+
+def test_lock_survives_another_run_removing_the_folder_mid_mkdir(tmp_path, monkeypatch):
+    """Path.mkdir's FileExistsError when the folder vanished between its mkdir and its is_dir() check
+    (another run released the empty folder it had created) is a race, not an error; a FILE is one."""
+    from baselines.run_folder import RunLock
+
+    folder = tmp_path / "run"
+    real_mkdir, raced = Path.mkdir, []
+
+    def racing_mkdir(self, *args, **kwargs):
+        if self == folder and not raced:  # the other run's folder existed at os.mkdir, gone at is_dir()
+            raced.append(True)
+            raise FileExistsError(errno.EEXIST, "File exists", str(self))
+        return real_mkdir(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "mkdir", racing_mkdir)
+    lock = RunLock(folder).acquire()
+    assert raced and lock.held and (folder / ".run.lock").exists()
+    lock.release()
+    monkeypatch.setattr(Path, "mkdir", real_mkdir)
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(RunFolderError, match="cannot create it"):
+        RunLock(tmp_path / "file").acquire()
