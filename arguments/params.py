@@ -258,6 +258,11 @@ class OptimizationParams:
     stall_iterations: int = param(200, "stop a run that cannot learn (no Gaussian visible in any view, or a "
                                   "loss flat to 1e-4) after this many iterations from its start, with "
                                   "error: and exit 2 (0: never)", ours=True, check=_check_non_negative)
+    nonfinite_skips: int = param(3, "a step whose gradients are NaN/inf is skipped (no densification statistic, "
+                                 "no optimizer step), logged, and its starting state saved once to "
+                                 "nonfinite_<stage>_<iteration>.pth for diagnosis; the run stops with error: "
+                                 "after more than this many such steps in a row (0: at the first)",
+                                 ours=True, check=_check_non_negative)
 
 
 @dataclass

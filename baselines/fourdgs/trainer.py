@@ -131,6 +131,7 @@ class Trainer:
         self.run_folder: RunFolder | None = None  # set by the app: run.json records saves and the end
         self._stop: StopFlag | None = None
         self.stall_guard = StallGuard(0)  # armed by train() for a run that starts from its initial cloud
+        self.nonfinite_steps, self._nonfinite_in_a_row = 0, 0  # skipped steps (_gradients_finite)
 
     def identity(self) -> RunIdentity:
         """The plugins and active components of this run (what a checkpoint must match to resume)."""
@@ -200,7 +201,7 @@ class Trainer:
         )
         self.run_log.event("train_end", wall_seconds=result.wall_seconds, timings_ms=result.timings,
                            train_seconds=self.train_seconds, train_cpu_seconds=self.train_cpu_seconds,
-                           peak_rss_mib=peak_rss_mib())
+                           peak_rss_mib=peak_rss_mib(), nonfinite_steps=self.nonfinite_steps)
         self.run_log.close()
         return result
 
@@ -273,9 +274,9 @@ class Trainer:
 
         with self.timer("densify_step"):
             with torch.no_grad():
-                self._check_finite_gradients()
-                self._densify()
-                model.optimizer.step()
+                if self._gradients_finite():
+                    self._densify()
+                    model.optimizer.step()
                 model.optimizer.zero_grad(set_to_none=True)
         self.hooks.call("on_iteration_end", ctx)
         ctx.metrics.update(
@@ -285,11 +286,16 @@ class Trainer:
         self.stall_guard.observe(ctx)
         self.run_log.iteration(ctx, every=self.run.log_every)
 
-    def _check_finite_gradients(self) -> None:
-        """Stop with the culprit named before a non-finite gradient poisons the parameters.
+    def _gradients_finite(self) -> bool:
+        """True when every gradient is finite; else the step is skipped, or the run stopped.
 
         Adam turns one NaN gradient into NaN parameters for good, and the run then fails later,
-        far from the cause (the rasterizer's input check), or finishes with a broken model.
+        far from the cause (the rasterizer's input check), or finishes with a broken model. A rare
+        non-finite step (one Gaussian's deformed covariance overflowing in one view pair) is skipped
+        instead, like mixed-precision loss scaling does: nothing is updated, the densification
+        statistic is not accumulated. The first skipped step's state (parameters before it,
+        optimizer, the views it drew) is written to nonfinite_<stage>_<iteration>.pth so the cause
+        can be found; more than --nonfinite_skips such steps in a row stop the run with the culprit.
         """
         ctx, optimizer = self.ctx, self.ctx.model.optimizer
         # The HexPlane planes (36M values in 4DGS's default model) are left out: their gradient is
@@ -299,16 +305,44 @@ class Trainer:
                  for p in group["params"] if p.grad is not None]
         # one fused pass (max |g| is NaN/inf iff some entry is) instead of a check and sync per tensor
         if not grads or bool(torch.isfinite(_max_abs(grads))):
-            return
+            self._nonfinite_in_a_row = 0
+            return True
         bad = [group for group in optimizer.param_groups
                if any(p.grad is not None and not bool(torch.isfinite(p.grad).all()) for p in group["params"])]
         rates = ", ".join(f"{g['name']} (lr {g['lr']:.3g})" for g in bad)
         losses = ", ".join(f"{k} {float(v.detach()):.4g}" for k, v in ctx.losses.items())
-        raise FloatingPointError(
-            f"non-finite gradients at {ctx.stage} iteration {ctx.iteration} in {rates}; losses: {losses}. "
-            f"Learning rates of position, deformation and grid scale with the scene extent "
-            f"({ctx.model.spatial_lr_scale:.3g} here); on a large-scale scene lower them (e.g. "
-            f"--deformation_lr_init, --grid_lr_init) or rescale the scene")
+        where = f"{ctx.stage} iteration {ctx.iteration}"
+        self._nonfinite_in_a_row += 1
+        self.nonfinite_steps += 1
+        dump = self._save_nonfinite_state() if self.nonfinite_steps == 1 else None
+        views = [v.camera.image_name for v in ctx.views] + [p.camera.image_name for p in ctx.partners]
+        self.run_log.event("nonfinite_step", stage=ctx.stage, iteration=ctx.iteration, groups=[g["name"] for g in bad],
+                           views=views, in_a_row=self._nonfinite_in_a_row, state=str(dump) if dump else None)
+        if self._nonfinite_in_a_row > self.opt.nonfinite_skips:
+            raise FloatingPointError(
+                f"non-finite gradients at {where} in {rates}; losses: {losses} "
+                f"({self._nonfinite_in_a_row} steps in a row, --nonfinite_skips {self.opt.nonfinite_skips}). "
+                f"Learning rates of position, deformation and grid scale with the scene extent "
+                f"({ctx.model.spatial_lr_scale:.3g} here); on a large-scale scene lower them (e.g. "
+                f"--deformation_lr_init, --grid_lr_init) or rescale the scene")
+        log.warning("non-finite gradients at %s in %s (views %s): step skipped%s", where, rates, ", ".join(views),
+                    f"; its state: {dump}" if dump else "")
+        return False
+
+    def _save_nonfinite_state(self) -> Path | None:
+        """The model before the skipped step (a loadable training state) and the views it drew."""
+        ctx = self.ctx
+        path = ctx.model_path / f"nonfinite_{ctx.stage}_{ctx.iteration}.pth"
+        extra = {"views": [v.camera.image_name for v in ctx.views],
+                 "partners": [p.camera.image_name for p in ctx.partners],
+                 "losses": {k: float(v.detach()) for k, v in ctx.losses.items()},
+                 "grads": {g["name"]: [p.grad.detach().clone() if p.grad is not None else None for p in g["params"]]
+                           for g in ctx.model.optimizer.param_groups if g["name"] != "grid"}}
+        try:
+            return save_training_state(path, ctx.model, ctx.iteration, ctx.stage, extra)
+        except OSError as err:  # a diagnosis aid: never the reason a run stops
+            log.warning("could not save the non-finite step's state to %s (%s)", path, err)
+            return None
 
     def baseline_losses(self) -> dict[str, Tensor]:
         """4DGS's loss: L1 over the batch, optional D-SSIM, HexPlane regularisers (fine stage).
