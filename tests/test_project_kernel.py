@@ -81,6 +81,33 @@ def test_kernel_equals_torch_twin_on_hard_cases(compiled, name):
     assert all(torch.isfinite(g).all() for g in grads)
 
 
+def test_a_blown_up_gaussian_in_float32_gets_the_twins_finite_gradients(compiled):
+    """A dynamic Gaussian of a real DAVIS run (libby, fine iteration 817) whose deformed scales had
+    grown to ~1e12: |t0 x t1|^2 overflows float32 (det = inf, conic 0, no gradient through det),
+    and forming t1 x k before scaling it by that zero gradient made NaN means gradients that
+    stopped the run. The kernel must give the torch twin's finite gradients, with and without
+    gradient on the blown-up Gaussian's own outputs."""
+    n = 3
+    means = torch.tensor([[-3.876, 14.81, 20.73], [0.1, -0.2, 3.0], [0.4, 0.1, 4.0]])
+    quats = torch.tensor([[-0.6657, 0.0203, -0.7115, 0.2241], [1.0, 0.0, 0.0, 0.0], [0.9, 0.1, 0.3, 0.0]])
+    scales = torch.tensor([[5.04e10, 3.89e12, 8.63e9], [0.05, 0.02, 0.03], [0.1, 0.1, 0.02]])
+    viewmat, K = torch.eye(4), torch.tensor([[282.4, 0.0, 160.0], [0.0, 282.4, 90.0], [0.0, 0.0, 1.0]])
+    for own_gradient in (False, True):
+        results = []
+        for fn in (project_gaussians_torch, project_kernel.project_gaussians_kernel):
+            inputs = [t.clone().requires_grad_() for t in (means, quats, scales)]
+            proj = fn(*inputs, viewmat, K, 320, 180, torch.full((n,), 0.9))
+            weight = torch.ones(n, 1) if own_gradient else torch.tensor([[0.0], [1.0], [1.0]])
+            loss = sum((proj[k].reshape(n, -1) * weight).sum() for k in DIFFERENTIABLE)
+            results.append((proj, torch.autograd.grad(loss, inputs)))
+        (want, want_grads), (got, got_grads) = results
+        assert not torch.isfinite(torch.linalg.det(want.cov2d[0].double()).float())  # the overflow is real
+        assert torch.equal(got.visible, want.visible)
+        for name, g, w in zip(("means", "quats", "scales"), got_grads, want_grads):
+            assert torch.isfinite(w).all() and torch.isfinite(g).all(), (name, own_gradient, g)
+            torch.testing.assert_close(g, w, rtol=1e-4, atol=1e-6, msg=lambda m, name=name: f"{name}: {m}")
+
+
 def test_kernel_passes_gradcheck(compiled):
     scene = random_scene(12, 40, 30, seed=3, margin=0.4, dtype=torch.float64)
     scene.means[0] = scene.means[0] * 0  # one Gaussian behind or beside the camera

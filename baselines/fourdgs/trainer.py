@@ -330,10 +330,10 @@ class Trainer:
         return False
 
     def _save_nonfinite_state(self) -> Path | None:
-        """The model before the skipped step (a loadable training state) and the views it drew."""
+        """The model before the skipped step and the views it drew: a checkpoint `--start_checkpoint` loads."""
         ctx = self.ctx
         path = ctx.model_path / f"nonfinite_{ctx.stage}_{ctx.iteration}.pth"
-        extra = {"views": [v.camera.image_name for v in ctx.views],
+        extra = {**self._checkpoint_extra(), "views": [v.camera.image_name for v in ctx.views],
                  "partners": [p.camera.image_name for p in ctx.partners],
                  "losses": {k: float(v.detach()) for k, v in ctx.losses.items()},
                  "grads": {g["name"]: [p.grad.detach().clone() if p.grad is not None else None for p in g["params"]]
@@ -472,7 +472,15 @@ class Trainer:
     def save_checkpoint(self) -> Path:
         ctx = self.ctx
         path = ctx.model_path / f"chkpnt_{ctx.stage}_{ctx.iteration}.pth"
-        extra = {
+        save_training_state(path, ctx.model, ctx.iteration, ctx.stage, self._checkpoint_extra())
+        if self.run_folder is not None:
+            self.run_folder.record_checkpoint(path, ctx.stage, ctx.iteration)
+        self.run_log.event("checkpoint", path=str(path))
+        return path
+
+    def _checkpoint_extra(self) -> dict:
+        """What a checkpoint holds besides the model: RNG, sampler and plugin states, the run's identity."""
+        return {
             "torch_rng": torch.get_rng_state(),
             "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
             "sampler": self.sampler.state_dict(),
@@ -482,11 +490,6 @@ class Trainer:
             "run": {"plugins": list(self.identity().plugins),
                     "components": {k: list(v) for k, v in self.identity().components.items()}},
         }
-        save_training_state(path, ctx.model, ctx.iteration, ctx.stage, extra)
-        if self.run_folder is not None:
-            self.run_folder.record_checkpoint(path, ctx.stage, ctx.iteration)
-        self.run_log.event("checkpoint", path=str(path))
-        return path
 
     def load_model_from(self, folder: Path) -> None:
         """Build the model (a plugin may replace it) and load a point_cloud/iteration_N folder.

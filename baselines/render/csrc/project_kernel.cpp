@@ -257,16 +257,18 @@ void backward_range(const Camera<T>& cam, const T* means, const T* quats, const 
             }
             const T ga0 = ga + cam.eps2d * gdet;
             const T gc0 = gc + cam.eps2d * gdet;
-            // d|t0 x t1|^2 / dt0 = 2 t1 x k, / dt1 = 2 k x t0
+            // d|t0 x t1|^2 / dt0 = t1 x gk, / dt1 = gk x t0 with gk = 2 gdet k. gk first, as torch's
+            // chain does: for a blown-up Gaussian (|t| ~ 1e13) t1 x k overflows float32 while gdet
+            // is 0 (det = inf), and 0 * inf would be NaN where torch gives 0.
             const T* t0 = P.t0;
             const T* t1 = P.t1;
-            const T* k = P.k;
-            const T t1xk[3] = {t1[1] * k[2] - t1[2] * k[1], t1[2] * k[0] - t1[0] * k[2], t1[0] * k[1] - t1[1] * k[0]};
-            const T kxt0[3] = {k[1] * t0[2] - k[2] * t0[1], k[2] * t0[0] - k[0] * t0[2], k[0] * t0[1] - k[1] * t0[0]};
+            const T gk[3] = {2 * gdet * P.k[0], 2 * gdet * P.k[1], 2 * gdet * P.k[2]};
+            const T t1xgk[3] = {t1[1] * gk[2] - t1[2] * gk[1], t1[2] * gk[0] - t1[0] * gk[2], t1[0] * gk[1] - t1[1] * gk[0]};
+            const T gkxt0[3] = {gk[1] * t0[2] - gk[2] * t0[1], gk[2] * t0[0] - gk[0] * t0[2], gk[0] * t0[1] - gk[1] * t0[0]};
             T g_t0[3], g_t1[3];
             for (int d = 0; d < 3; ++d) {
-                g_t0[d] = 2 * ga0 * t0[d] + gb * t1[d] + 2 * gdet * t1xk[d];
-                g_t1[d] = 2 * gc0 * t1[d] + gb * t0[d] + 2 * gdet * kxt0[d];
+                g_t0[d] = 2 * ga0 * t0[d] + gb * t1[d] + t1xgk[d];
+                g_t1[d] = 2 * gc0 * t1[d] + gb * t0[d] + gkxt0[d];
             }
             // t0[c] = sum_r row0[r] M[r][c]
             T g_row0[3], g_row1[3], g_Rq[9];
