@@ -43,7 +43,8 @@ Columns, per (capture, method):
   meaningful with the `separation` component).
 - NN dist: median distance from each final (canonical) Gaussian of this method to the other
   method's nearest one, in units of the scene extent (the training cameras' radius, as the
-  trainer's `cameras_extent`).
+  trainer's `cameras_extent`); ReFlow's row adds its static Gaussians alone (its dynamic ones sit
+  at canonical positions of the separated deformation, not at any one frame's).
 
 Missing pieces give an empty cell with a footnote number; a folder that is not a finished output
 is one error line. Writes `STEM.md` and `STEM.json` (default `OUT/diagnosis`).
@@ -355,10 +356,12 @@ def diagnose_run(run: Path, scene, source: Path, render_train: bool) -> dict:
     points, table = final_cloud(run, iteration)
     row["Gaussians"] = len(points)
     row["_points"] = points
+    row["_static"] = None
     if reflow is not None:
         row["reflow"] = reflow
         if table is not None and "separation" in reflow.get("components", []):
             row["dynamic"], row["static"] = int(table.sum()), int((~table).sum())
+            row["_static"] = points[~table]
         else:
             why["static / dynamic"] = ("no labels at the end: " + ("no deformation_table.pth in the final point cloud"
                                        if table is None else "the separation component was off"))
@@ -413,10 +416,13 @@ def diagnose_group(group: Group, data: Path | None, render_train: bool) -> dict[
     for (method, points), other in zip(zip(METHODS, pair), pair[::-1]):
         if points is not None and other is not None:
             rows[method]["NN dist"] = nearest_median(points, other, extent)
+            if rows[method].get("_static") is not None:  # the static ones alone: the background's placement
+                rows[method]["NN dist static"] = nearest_median(rows[method]["_static"], other, extent)
         elif "missing" not in rows[method]:
             rows[method]["why"]["NN dist"] = "the other method has no finished run"
     for row in rows.values():
         row.pop("_points", None)
+        row.pop("_static", None)
         row["extent"] = extent
     return rows
 
@@ -460,13 +466,16 @@ def cells(row: dict, notes: Notes) -> list[str]:
         labels = f"{row['static']:,} / {row['dynamic']:,}"
     else:
         labels = notes.mark(why["static / dynamic"]) if "static / dynamic" in why else ""
+    nn_cell = cell("NN dist", "{:.3f}")
+    if row.get("NN dist static") is not None:
+        nn_cell += f" (static {row['NN dist static']:.3f})"
     share = row.get("SE in mask share")
     share_cell = f"{100 * share:.0f}" if share is not None else (notes.mark(why["SE in mask share"])
                                                                  if "SE in mask share" in why else "")
     return [cell("PSNR"), cell("held-out PSNR-mask", note_key="held-out in"),
             cell("held-out PSNR-outside", note_key="held-out out"), cell("train in"), cell("train out"), share_cell,
             span_cell, mask_cell, prior, cell("cloud depth error", "{:.3f}"), ratio_cell,
-            cell("Gaussians", "{:,}"), labels, cell("NN dist", "{:.4f}")]
+            cell("Gaussians", "{:,}"), labels, nn_cell]
 
 
 def table(groups: dict[str, dict[str, dict]]) -> str:

@@ -136,6 +136,20 @@ def test_diagnosis_gives_the_figures_of_known_errors_inside_and_outside_the_true
         assert row["Gaussians"] == PlyData.read(str(ply))["vertex"].count
         assert row["NN dist"] is not None and row["NN dist"] >= 0
     assert reflow["static"] + reflow["dynamic"] == reflow["Gaussians"] and reflow["dynamic"] > 0
+    import torch
+
+    clouds = {m: np.stack([np.asarray(PlyData.read(str(runs[m] / "point_cloud" / f"iteration_{ITERATIONS}" /
+                                                       "point_cloud.ply"))["vertex"][k]) for k in "xyz"], 1)
+              for m in runs}
+    static = ~torch.load(runs["reflow"] / "point_cloud" / f"iteration_{ITERATIONS}" / "deformation_table.pth").numpy()
+    assert static.sum() == reflow["static"]
+
+    def brute(a: np.ndarray, b: np.ndarray) -> float:  # every pair's distance, no tree
+        return float(np.median(np.sqrt(((a[:, None] - b[None]) ** 2).sum(-1)).min(1)))
+    assert reflow["NN dist"] == pytest.approx(brute(clouds["reflow"], clouds["baseline"]) / reflow["extent"], rel=1e-5)
+    assert base["NN dist"] == pytest.approx(brute(clouds["baseline"], clouds["reflow"]) / base["extent"], rel=1e-5)
+    assert reflow["NN dist static"] == pytest.approx(
+        brute(clouds["reflow"][static], clouds["baseline"]) / reflow["extent"], rel=1e-5)
     assert reflow["prior residual"] == 0.05 and reflow["cloud depth error"] == 0.03
     assert reflow["canonical alignment residual"] == 0.07
     first_reflow = json.loads((tmp_path / "first.json").read_text())["groups"]["tiny"]["reflow"]
