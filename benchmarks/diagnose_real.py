@@ -13,6 +13,7 @@ trained. Each group's dataset is the one its runs were trained on (`-s` and `-r`
 Columns, per (capture, method):
 
 - PSNR: train.py's held-out PSNR (`results.json`).
+- train PSNR: the same on the training views (mean of the per-view PSNR of the 8-bit renders below).
 - held-out in / out: PSNR inside / outside the TRUE masks (the dataset's evaluation-only masks,
   `Camera.extras["eval_mask"]`: DAVIS annotations, panoptic seg/ and its visual hull), mean over the
   held-out views, from the saved 8-bit renders (`real_suite.masked_metrics`). A dataset without true
@@ -67,7 +68,7 @@ from benchmarks import real_suite  # noqa: E402
 from benchmarks.prepare_davis import mask_scores  # noqa: E402
 
 METHODS = real_suite.DEFAULT_METHODS  # ("baseline", "reflow")
-COLUMNS = ("PSNR", "held-out in", "held-out out", "train in", "train out", "SE in mask %", "out-of-span",
+COLUMNS = ("PSNR", "train PSNR", "held-out in", "held-out out", "train in", "train out", "SE in mask %", "out-of-span",
            "mask IoU / P / R", "prior resid.", "cloud depth err", "static / sparse depth", "Gaussians",
            "static / dynamic", "NN dist")
 
@@ -346,13 +347,16 @@ def diagnose_run(run: Path, scene, source: Path, render_train: bool) -> dict:
     folder, reason = train_views(run, iteration, len(scene.train_cameras), source, render_train)
     train_masks = true_masks(scene.train_cameras)
     if folder is None:
-        why["train in"] = why["train out"] = reason
-    elif train_masks is None:
-        why["train in"] = why["train out"] = "no true masks for the training views"
+        why["train PSNR"] = why["train in"] = why["train out"] = reason
     else:
-        train = region_figures(read_views(folder, len(scene.train_cameras)), train_masks)
-        row["train in"], row["train out"] = train["in"], train["out"]
-        row["train SE in mask share"] = train["se_in_share"]
+        if train_masks is None:
+            why["train in"] = why["train out"] = "no true masks for the training views"
+        train_images = read_views(folder, len(scene.train_cameras))
+        row["train PSNR"] = full_psnr(train_images)
+        if train_masks is not None:
+            train = region_figures(train_images, train_masks)
+            row["train in"], row["train out"] = train["in"], train["out"]
+            row["train SE in mask share"] = train["se_in_share"]
     points, table = final_cloud(run, iteration)
     row["Gaussians"] = len(points)
     row["_points"] = points
@@ -472,7 +476,7 @@ def cells(row: dict, notes: Notes) -> list[str]:
     share = row.get("SE in mask share")
     share_cell = f"{100 * share:.0f}" if share is not None else (notes.mark(why["SE in mask share"])
                                                                  if "SE in mask share" in why else "")
-    return [cell("PSNR"), cell("held-out PSNR-mask", note_key="held-out in"),
+    return [cell("PSNR"), cell("train PSNR"), cell("held-out PSNR-mask", note_key="held-out in"),
             cell("held-out PSNR-outside", note_key="held-out out"), cell("train in"), cell("train out"), share_cell,
             span_cell, mask_cell, prior, cell("cloud depth error", "{:.3f}"), ratio_cell,
             cell("Gaussians", "{:,}"), labels, nn_cell]
