@@ -48,7 +48,10 @@ Columns, per (capture, method):
   at canonical positions of the separated deformation, not at any one frame's).
 
 Missing pieces give an empty cell with a footnote number; a folder that is not a finished output
-is one error line. Writes `STEM.md` and `STEM.json` (default `OUT/diagnosis`).
+is one error line. Writes `STEM.md` and `STEM.json` (default `OUT/diagnosis`); the JSON adds, per
+run, each held-out view's time and PSNR (all / in / out), the training views' error share, ReFlow's
+canonical alignment residual and its whole results.json "reflow" record, the pixel-pooled mask
+scores, and the scene extent.
 """
 from __future__ import annotations
 
@@ -168,7 +171,7 @@ def region_figures(views: list[tuple[np.ndarray, np.ndarray]], masks: list[np.nd
     """PSNR inside / outside the masks (mean over views, `real_suite.region_psnr`) and the masks'
     share of the squared error summed over the views; all None without masks."""
     if masks is None:
-        return {"in": None, "out": None, "se_in_share": None}
+        return {"in": None, "out": None, "se_in_share": None, "per_view": []}
     inside, outside, se_in, se_all = [], [], 0.0, 0.0
     for (render, gt), mask in zip(views, masks):
         if mask.shape != gt.shape[:2]:
@@ -177,7 +180,8 @@ def region_figures(views: list[tuple[np.ndarray, np.ndarray]], masks: list[np.nd
         outside.append(real_suite.region_psnr(render, gt, ~mask))
         error = ((render.astype(np.float64) - gt.astype(np.float64)) ** 2).sum(axis=2)
         se_in, se_all = se_in + float(error[mask].sum()), se_all + float(error.sum())
-    return {"in": _mean(inside), "out": _mean(outside), "se_in_share": se_in / se_all if se_all > 0 else None}
+    return {"in": _mean(inside), "out": _mean(outside), "se_in_share": se_in / se_all if se_all > 0 else None,
+            "per_view": [{"in": a, "out": b} for a, b in zip(inside, outside)]}
 
 
 def full_psnr(views: list[tuple[np.ndarray, np.ndarray]]) -> float | None:
@@ -340,6 +344,10 @@ def diagnose_run(run: Path, scene, source: Path, render_train: bool) -> dict:
     if test_masks is None:
         why["held-out in"] = why["held-out out"] = why["SE in mask share"] = \
             "no true masks for the held-out views (the dataset has no evaluation-only masks)"
+    row["held-out views"] = [{"name": c.image_name, "time": c.time,
+                              "PSNR": real_suite.region_psnr(*view, np.ones(view[1].shape[:2], bool)),
+                              **({f"PSNR {k}": v for k, v in figures["per_view"][i].items()} if test_masks else {})}
+                             for i, (c, view) in enumerate(zip(scene.test_cameras, held))]
     inside, outside = time_span_split(scene)
     row["out-of-span views"] = [scene.test_cameras[i].image_name for i in outside]
     row["out-of-span PSNR"] = full_psnr([held[i] for i in outside])
