@@ -136,7 +136,8 @@ def run_dataset(run: Path, data: Path | None) -> tuple[Path, int]:
         raise DiagnosisError(f"{run / real_suite.DONE_FILE}: its command names no -s DATASET") from None
     source = data / source.name if data is not None else source
     if not source.is_dir():
-        raise DiagnosisError(f"{run} was trained on {source}, which does not exist (--data DIR: where the captures are)")
+        raise DiagnosisError(f"{run} was trained on {source}, which does not exist "
+                             "(--data DIR: where the captures are)")
     return source, resolution
 
 
@@ -145,7 +146,8 @@ def final_iteration(run: Path) -> int:
     try:
         return int(real_suite.latest_test_dir(run).name.split("_")[1])
     except real_suite.SuiteError:
-        raise DiagnosisError(f"{run} has {real_suite.DONE_FILE} but no test/ours_<N> renders: not a finished run") from None
+        raise DiagnosisError(f"{run} has {real_suite.DONE_FILE} but no test/ours_<N> renders: "
+                             "not a finished run") from None
 
 
 def read_views(folder: Path, count: int) -> list[tuple[np.ndarray, np.ndarray]] | None:
@@ -175,7 +177,8 @@ def region_figures(views: list[tuple[np.ndarray, np.ndarray]], masks: list[np.nd
     inside, outside, se_in, se_all = [], [], 0.0, 0.0
     for (render, gt), mask in zip(views, masks):
         if mask.shape != gt.shape[:2]:
-            raise DiagnosisError(f"a true mask is {mask.shape}, the render {gt.shape[:2]}: the dataset is not the run's")
+            raise DiagnosisError(f"a true mask is {mask.shape}, the render {gt.shape[:2]}: "
+                                 "the dataset is not the run's")
         inside.append(real_suite.region_psnr(render, gt, mask))
         outside.append(real_suite.region_psnr(render, gt, ~mask))
         error = ((render.astype(np.float64) - gt.astype(np.float64)) ** 2).sum(axis=2)
