@@ -424,7 +424,10 @@ def diagnose_group(group: Group, data: Path | None, render_train: bool) -> dict[
     reflow_row = rows.get("reflow", {})
     agreement = estimated_masks(group.runs.get("reflow"), scene, reflow_row.get("reflow"))
     if agreement is None:
-        reflow_row["why"]["mask IoU"] = "no frame has both an estimated and a true mask"
+        cameras = list(scene.train_cameras) + list(scene.test_cameras)
+        reflow_row["why"]["mask IoU"] = ("no true masks in the dataset" if all(c.extras.get("eval_mask") is None
+                                                                               for c in cameras)
+                                         else "no frame has both an estimated and a true mask")
     else:
         reflow_row["mask agreement"] = {**mask_agreement(agreement[0], agreement[1]), "masks": agreement[2]}
     pair = [rows[m].get("_points") for m in METHODS]
