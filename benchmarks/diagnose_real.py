@@ -111,8 +111,9 @@ def find_groups(out: Path, layout: str = "suite", captures: list[str] | None = N
                 if (run / real_suite.DONE_FILE).is_file():
                     group.runs[method] = run
                 else:
-                    group.missing[method] = (f"{run} is not finished (no {real_suite.DONE_FILE})" if run.exists()
-                                             else f"no {method} run ({run})")
+                    where = run.relative_to(out)
+                    group.missing[method] = (f"{where} is not finished (no {real_suite.DONE_FILE})" if run.exists()
+                                             else f"no {method} run ({where})")
     found = [g for g in groups.values() if g.runs]
     if not found:
         where = "<capture>/<method>" + ("" if layout == "suite" else "/fine_<B>")
@@ -514,7 +515,7 @@ def table(groups: dict[str, dict[str, dict]]) -> str:
             lines.append(f"| {label} | {method} | " + " | ".join(cells(row, notes)) + " |")
     text = "\n".join(lines)
     if notes.texts:
-        text += "\n\n" + "\n".join(f"[{i}] {t}" for i, t in enumerate(notes.texts, 1))
+        text += "\n\n" + "\n".join(f"- [{i}] {t}" for i, t in enumerate(notes.texts, 1))
     return text
 
 

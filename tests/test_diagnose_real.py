@@ -180,9 +180,9 @@ def test_missing_pieces_are_footnotes_and_the_convergence_layout_is_read(finishe
     reflow_line = next(line for line in lines if line.startswith("| tiny | reflow |"))
     base_line = next(line for line in lines if line.startswith("| tiny | baseline |"))
     note = reflow_line.split("|")[3].strip()
-    assert note.startswith("[") and any(line.startswith(note) and "no reflow run" in line for line in lines)
+    assert note.startswith("[") and any(line.startswith(f"- {note}") and "no reflow run" in line for line in lines)
     held_in = base_line.split("|")[[c.strip() for c in lines[0].split("|")].index("held-out in")].strip()
-    assert any(line.startswith(held_in) and "no true masks" in line for line in lines)
+    assert any(line.startswith(f"- {held_in}") and "no true masks" in line for line in lines)
     assert len(base_line.split("|")) == len(lines[0].split("|"))  # as many cells as the header
 
     study = tmp_path / "study" / "tiny"
