@@ -94,6 +94,9 @@ def find_groups(out: Path, layout: str = "suite", captures: list[str] | None = N
     where at least one method has a finished run (`real_done.json`). DiagnosisError when none has."""
     if not out.is_dir():
         raise DiagnosisError(f"{out}: no such folder (want a real_suite.py --out or convergence.py --out folder)")
+    if (out / real_suite.DONE_FILE).is_file():
+        raise DiagnosisError(f"{out} is one run; give the output folder that holds <capture>/<method>/ (its "
+                             f"{'grandparent' if layout == 'suite' else 'third parent'})")
     groups: dict[str, Group] = {}
     for capture in sorted(p for p in out.iterdir() if p.is_dir()):
         if captures and capture.name not in captures:
@@ -331,6 +334,8 @@ def diagnose_run(run: Path, scene, source: Path, render_train: bool) -> dict:
     """The figures of one finished run that need nothing of the other method; `why` maps a figure
     to the reason it is None."""
     iteration = final_iteration(run)
+    if not (run / "results.json").is_file():
+        raise DiagnosisError(f"{run} has {real_suite.DONE_FILE} but no results.json: not a finished run")
     results = json.loads((run / "results.json").read_text())
     reflow = results.get("reflow")
     row: dict = {"run": str(run), "iteration": iteration, "PSNR": results.get(f"ours_{iteration}", {}).get("PSNR"),
@@ -557,4 +562,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    from baselines.thread_policy import apply_thread_policy
+
+    apply_thread_policy()  # before torch starts (rendering): passive OpenMP waits, threads from the CPUs available
     sys.exit(main())

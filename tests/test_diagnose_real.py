@@ -208,6 +208,17 @@ def test_a_folder_that_is_not_a_finished_output_is_one_error_line(tmp_path, caps
     assert diagnose_real.main([str(tmp_path / "nowhere")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "nowhere" in err[0]
+    (tmp_path / "cap" / "baseline" / "real_done.json").write_text('{"command": ["train.py", "-s", "x"]}')
+    assert diagnose_real.main([str(tmp_path / "cap" / "baseline")]) == 2  # one run, not an output folder
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is one run" in err[0]
+    assert diagnose_real.main([str(tmp_path)]) == 2  # its dataset is not there
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "which does not exist" in err[0]
+    (tmp_path / "cap" / "baseline" / "real_done.json").write_text(json.dumps({"command": ["train.py", "-s", str(tmp_path)]}))
+    assert diagnose_real.main([str(tmp_path)]) == 2  # done-marked, but no held-out renders
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no test/ours_<N> renders" in err[0] and str(tmp_path / "cap" / "baseline") in err[0]
 
 
 def test_nearest_distances_and_mask_agreement_on_known_geometry():
