@@ -451,17 +451,13 @@ def diagnose_group(group: Group, data: Path | None, render_train: bool) -> dict[
     return rows
 
 
-def _number(value, fmt: str = "{:.2f}") -> str:
-    return fmt.format(value)
-
-
 def cells(row: dict, notes: Notes) -> list[str]:
     """The COLUMNS cells of one row; a missing figure gives its footnote mark, one that does not apply ''."""
     why = row.get("why", {})
 
     def cell(key: str, fmt: str = "{:.2f}", note_key: str | None = None) -> str:
         if row.get(key) is not None:
-            return _number(row[key], fmt)
+            return fmt.format(row[key])
         reason = why.get(note_key or key)
         return notes.mark(reason) if reason else ""
 
