@@ -37,7 +37,8 @@ FOURDGS_FIELDS = {
 }
 OURS = {ModelParams: {"dataset_type", "force_dataset_points", "train_cameras", "test_cameras", "test_every"}, PipelineParams: {"backend", "device", "time_outside"},
         OptimizationParams: {"seed", "densify_max_gaussians", "prune_min_gaussians",
-                             "densify_grad_from", "stall_iterations"},
+                             "densify_grad_from", "stall_iterations",
+                             "nonfinite_skips"},
         ModelHiddenParams: {"mlp_precision"}}
 
 
