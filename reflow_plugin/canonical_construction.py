@@ -84,24 +84,6 @@ class CanonicalConstruction:
                      "points %.3f -> %.3f)", len(done), len(cameras), before, after)
         return out
 
-    def _flow_canonical_skipped(self, ctx) -> str | None:
-        """Why `--canonical_provider auto` builds no canonical space here, or None (build it).
-
-        Without a depth prior on every frame, auto's provider would be flow: DIS flow triangulated
-        with the known cameras, the same evidence SfM used, less accurately (median depth
-        disagreement with the SfM points 7.9% per cell on DAVIS, docs/REAL_CAPTURES.md). Where the
-        host cloud holds those SfM points (dataset / triangulated), it is the better static cloud:
-        the flow-built one cost the background 2.1 dB on DAVIS dog and 1.65 dB on lady-running.
-        A random host cloud (no points) still gets the flow space; `--canonical_provider flow` forces it.
-        """
-        if self.p.canonical_provider != "auto" or all(c.disparity is not None for c in ctx.train_cameras):
-            return None
-        if ctx.point_cloud_source not in METRIC_SOURCES:
-            return None
-        return (f"no depth prior on every frame: the {ctx.point_cloud_source} cloud ({len(ctx.point_cloud)} "
-                f"points) + keyframe seeds instead of a flow-triangulated canonical space "
-                f"(--canonical_provider flow builds one)")
-
     def _host_cloud(self, ctx, masks, source) -> PointCloud | None:
         """Part 1: the host's cloud, labelled by mask vote, plus keyframe seeds (None: the host's as is)."""
         cameras, host = self.depth_cameras, ctx.point_cloud

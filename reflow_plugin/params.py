@@ -223,9 +223,7 @@ class ReFlowParams:
     # --- complete canonical space (paper 3.2.1, appendix A.1; reflow_plugin.canonical) ---
     canonical_provider: str = param("auto", "pointmap provider of the canonical space: depth (the dataset's "
                                             "disparity), flow (DIS flow triangulated with the cameras), auto "
-                                            "(depth when every frame has disparity; else no canonical space when "
-                                            "the host cloud holds SfM points, which then seed the static cloud "
-                                            "(the flow one lost 1.6-2.1 dB outside the masks on DAVIS); else flow)",
+                                            "(depth when every frame has disparity, else flow)",
                                     choices=CANONICAL_PROVIDERS)
     canonical_align: bool = param(True, "global coarse-to-fine alignment of the pointmaps; --no-canonical_align "
                                         "merges the raw per-frame pointmaps (the paper's 'w/o align' ablation)")

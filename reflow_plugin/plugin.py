@@ -144,14 +144,9 @@ class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugi
         if masks is not None:
             self.mask_tensors = {c.uid: torch.from_numpy(m).to(ctx.device) for c, m in zip(cameras, masks)}
         if self.is_enabled("comp_init") and canonical_available()[0]:
-            skip = self._flow_canonical_skipped(ctx)
-            if skip is None:
-                cloud = self._canonical_cloud(ctx, masks)
-                if cloud is not None:
-                    return cloud
-            else:
-                self.info["comp_init"] = skip
-                log.info("comp_init: %s", skip)
+            cloud = self._canonical_cloud(ctx, masks)
+            if cloud is not None:
+                return cloud
         return self._host_cloud(ctx, masks, source)
 
     def build_model(self, ctx) -> GaussianModel | None:

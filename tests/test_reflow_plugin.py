@@ -341,24 +341,3 @@ def test_dynamic_branch_position_scale_follows_the_capped_extent(extent, flags, 
     assert model.deformation.deformation_net.position_scale == pytest.approx(expected)
     assert plugin.info["dynamic_position_scale"] == pytest.approx(expected)
     assert [g for g, _ in scaled] == ["deformation", "grid"]
-
-
-@pytest.mark.parametrize("provider, disparity, source, builds", [
-    ("auto", False, "dataset", False),      # SfM points, no depth prior: they seed the static cloud
-    ("auto", False, "triangulated", False),
-    ("auto", False, "random", True),        # no points to trust: the flow-triangulated space
-    ("auto", True, "dataset", True),        # a depth prior on every frame: the depth space
-    ("flow", False, "dataset", True),       # asked for by name
-])
-def test_auto_provider_keeps_sfm_points_over_a_flow_canonical_space(provider, disparity, source, builds):
-    from types import SimpleNamespace
-
-    from reflow_plugin.canonical_construction import CanonicalConstruction
-
-    cameras = [SimpleNamespace(disparity=np.ones((2, 2)) if disparity else None) for _ in range(3)]
-    ctx = SimpleNamespace(train_cameras=cameras, point_cloud_source=source, point_cloud=np.zeros((1564, 3)))
-    plugin = SimpleNamespace(p=SimpleNamespace(canonical_provider=provider))
-    reason = CanonicalConstruction._flow_canonical_skipped(plugin, ctx)
-    assert (reason is None) == builds
-    if not builds:
-        assert "1564 points" in reason and "--canonical_provider flow" in reason
