@@ -30,6 +30,7 @@ DYNAMIC_INIT_OPACITY = 0.9  # dynamic seeds come from a frame where the object i
 DYNAMIC_AABB_MARGIN = 0.25  # dynamic HexPlane box: the dynamic points' box grown by this fraction per side
 TIME_SCALE_LR = 0.005  # learning rate of the keyframe seeds' log temporal window widths
 WINDOW_CULL = 1e-3  # keyframe copies whose window weight is below this are not deformed: exact below 1/255
+FLOW_CLOUD_MAX_DEPTH_ERROR = 0.02  # a flow-provider canonical cloud against the SfM points (canonical_construction.py)
 
 
 def _removed(what: str, why: str) -> str:

@@ -341,3 +341,18 @@ def test_dynamic_branch_position_scale_follows_the_capped_extent(extent, flags, 
     assert model.deformation.deformation_net.position_scale == pytest.approx(expected)
     assert plugin.info["dynamic_position_scale"] == pytest.approx(expected)
     assert [g for g, _ in scaled] == ["deformation", "grid"]
+
+
+@pytest.mark.parametrize("flow, general, expected", [
+    (True, 0.06, (0.02, "the flow provider's limit, FLOW_CLOUD_MAX_DEPTH_ERROR")),  # flow cloud: the tighter limit
+    (False, 0.06, (0.06, "--canonical_max_depth_error")),                           # depth prior: the general one
+    (True, 0.01, (0.01, "--canonical_max_depth_error")),                            # the smaller of the two applies
+    (True, 0.0, (0.02, "the flow provider's limit, FLOW_CLOUD_MAX_DEPTH_ERROR")),   # general off: the flow one holds
+])
+def test_a_flow_canonical_cloud_must_agree_with_the_sfm_points_more_closely(flow, general, expected):
+    from types import SimpleNamespace
+
+    from reflow_plugin.canonical_construction import CanonicalConstruction
+
+    plugin = SimpleNamespace(p=SimpleNamespace(canonical_max_depth_error=general))
+    assert CanonicalConstruction.depth_error_limit(plugin, flow) == expected

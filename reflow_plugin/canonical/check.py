@@ -226,12 +226,13 @@ def prior_residual(fits: Mapping, field_held_out: Mapping[str, float] | None = N
 
 def check_initial_cloud(static: np.ndarray, groups: Sequence[DynamicGroup], cameras: Sequence,
                         anchors: np.ndarray | None = None, fit_residual: Mapping | None = None,
-                        max_fit_residual: float = 0.0, max_depth_error: float = 0.0) -> CloudCheck:
+                        max_fit_residual: float = 0.0, max_depth_error: float = 0.0,
+                        depth_error_flag: str = "--canonical_max_depth_error") -> CloudCheck:
     """The measurements of the module docstring; the first failing one names the failure.
 
     fit_residual: the depth prior's residuals (prior_residual; None: not on that path), gated on
     its "held_out" entry. max_depth_error: limit of the cloud's depth error against the sparse
-    points (0 = not checked)."""
+    points (0 = not checked), set by the flag `depth_error_flag` (named in the failure)."""
     static = _subsample(static, MAX_POINTS)
     anchors = None if anchors is None or len(anchors) == 0 else _subsample(anchors, MAX_POINTS, 1)
     measurements: dict = {"static_points": len(static)}
@@ -266,7 +267,7 @@ def check_initial_cloud(static: np.ndarray, groups: Sequence[DynamicGroup], came
             measurements["depth_prior_rejected"] = True
             return CloudCheck(False, f"the cloud's depth disagrees with the sparse points: median relative error "
                                      f"{error:.1%} per covered cell (need <= {max_depth_error:.0%}, "
-                                     f"--canonical_max_depth_error)", measurements)
+                                     f"{depth_error_flag})", measurements)
     else:
         share = fraction_in_bounds(static, cameras)
         measurements["in_bounds"] = share
