@@ -86,6 +86,16 @@ def _compiler_identity(compiler: str) -> str:
     return proc.stdout + proc.stderr
 
 
+def check_abi_version(lib: ctypes.CDLL, function: str, expected: int, what: str) -> None:
+    """Call the library's `function` (no arguments, returns int) and raise KernelUnavailable
+    unless it returns `expected`: a stale or foreign library is never called with our signatures."""
+    version_of = getattr(lib, function)
+    version_of.argtypes, version_of.restype = [], ctypes.c_int
+    version = version_of()
+    if version != expected:
+        raise KernelUnavailable(f"{what} library reports ABI version {version}, expected {expected}")
+
+
 def library_path(name: str, source: Path, abi_version: int, compiler: str) -> Path:
     """Cache path of the library `name` built from `source` with `compiler`."""
     key = hashlib.sha256()
@@ -140,11 +150,16 @@ class NativeLibrary:
         self._lock = threading.Lock()
         self._library: ctypes.CDLL | None = None
         self._load_error: str | None = None
+        self._failed_under: tuple | None = None  # the environment the recorded failure happened in
 
     def reset(self) -> None:
         """Forget the loaded library or the recorded failure (tests; a changed environment)."""
         with self._lock:
-            self._library, self._load_error = None, None
+            self._library, self._load_error, self._failed_under = None, None, None
+
+    @staticmethod
+    def _build_environment() -> tuple:
+        return os.environ.get(ENV_COMPILER), os.environ.get(ENV_CACHE_DIR)
 
     def path(self, compiler: str) -> Path:
         """Cache path of this library built with `compiler`."""
@@ -173,17 +188,22 @@ class NativeLibrary:
             raise KernelUnavailable(f"the freshly built kernel {target} does not load ({exc})") from exc
 
     def load(self) -> ctypes.CDLL:
-        """The loaded library, building it on first use (one attempt per process).
+        """The loaded library, building it on first use (one attempt per process and environment).
+
+        A failure is remembered (no build attempt per call) for the $CXX and cache directory it
+        happened under; once those change (a test's temporary CXX gone) the next call tries again.
 
         Raises:
             KernelUnavailable: with the reason (no compiler, build failure, unwritable cache, ...).
         """
         with self._lock:
+            if self._load_error is not None and self._failed_under != self._build_environment():
+                self._load_error = None
             if self._library is None and self._load_error is None:
                 try:
                     self._library = self._load_or_build()
                 except KernelUnavailable as exc:
-                    self._load_error = str(exc)
+                    self._load_error, self._failed_under = str(exc), self._build_environment()
             if self._library is None:
                 raise KernelUnavailable(self._load_error)
             return self._library

@@ -25,7 +25,6 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from baselines import native_build
-from baselines.native_build import KernelUnavailable
 from baselines.render import Projection
 
 logger = logging.getLogger(__name__)
@@ -47,11 +46,7 @@ def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
         backward = getattr(lib, f"ff_backward_{suffix}")
         backward.argtypes = common + [ptr] * 5
         backward.restype = ctypes.c_int
-    lib.ff_abi_version.argtypes = []
-    lib.ff_abi_version.restype = ctypes.c_int
-    version = lib.ff_abi_version()
-    if version != ABI_VERSION:
-        raise KernelUnavailable(f"flow kernel library reports ABI version {version}, expected {ABI_VERSION}")
+    native_build.check_abi_version(lib, "ff_abi_version", ABI_VERSION, "flow kernel")
     return lib
 
 

@@ -29,7 +29,6 @@ import torch
 from torch import Tensor
 
 from baselines import native_build
-from baselines.native_build import KernelUnavailable
 
 logger = logging.getLogger(__name__)
 
@@ -50,11 +49,7 @@ def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
         backward = getattr(lib, f"pk_backward_{suffix}")
         backward.argtypes = common + [ptr, ptr, ptr, ptr]
         backward.restype = ctypes.c_int
-    lib.pk_abi_version.argtypes = []
-    lib.pk_abi_version.restype = ctypes.c_int
-    version = lib.pk_abi_version()
-    if version != ABI_VERSION:
-        raise KernelUnavailable(f"plane kernel library reports ABI version {version}, expected {ABI_VERSION}")
+    native_build.check_abi_version(lib, "pk_abi_version", ABI_VERSION, "plane kernel")
     return lib
 
 

@@ -78,11 +78,7 @@ def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.rk_raw_alpha_f32.restype = ctypes.c_int
     lib.rk_libm_expf.argtypes = [ptr, ptr, i64]
     lib.rk_libm_expf.restype = None
-    lib.rk_abi_version.argtypes = []
-    lib.rk_abi_version.restype = ctypes.c_int
-    version = lib.rk_abi_version()
-    if version != ABI_VERSION:
-        raise KernelUnavailable(f"kernel library reports ABI version {version}, expected {ABI_VERSION}")
+    native_build.check_abi_version(lib, "rk_abi_version", ABI_VERSION, "kernel")
     return lib
 
 

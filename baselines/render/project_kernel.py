@@ -28,7 +28,6 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from baselines import native_build
-from baselines.native_build import KernelUnavailable
 
 from .projection import Projection, project_gaussians_torch
 
@@ -51,11 +50,7 @@ def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
         backward = getattr(lib, f"pj_backward_{suffix}")
         backward.argtypes = [ptr] * 5 + camera + [ptr] * 7
         backward.restype = ctypes.c_int
-    lib.pj_abi_version.argtypes = []
-    lib.pj_abi_version.restype = ctypes.c_int
-    version = lib.pj_abi_version()
-    if version != ABI_VERSION:
-        raise KernelUnavailable(f"projection kernel library reports ABI version {version}, expected {ABI_VERSION}")
+    native_build.check_abi_version(lib, "pj_abi_version", ABI_VERSION, "projection kernel")
     return lib
 
 
