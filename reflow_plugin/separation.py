@@ -149,7 +149,9 @@ class SeparatedDeformation(DeformNetwork):
         elif deformed.numel() > 0:  # none alive at t (every copy culled): nothing to deform
             rows = out.index(deformed)
             if relative and self.anchored:
-                moved = self._anchored_forward(rows, field_times[deformed])
+                row_gaussian = (buffers or {}).get("row_gaussian")
+                moved = self._anchored_forward(rows, field_times[deformed],
+                                               None if row_gaussian is None else row_gaussian[deformed])
             else:
                 moved = super().forward(rows, field_times[deformed])
             # A field the network passed through (4DGS's disabled heads: SH, opacity) keeps `out`'s
@@ -171,22 +173,38 @@ class SeparatedDeformation(DeformNetwork):
             weight = torch.exp(-0.5 * z.square()).squeeze(1)
         return dynamic[weight >= self.window_cull]
 
-    def _anchored_forward(self, state: GaussianState, taus: Tensor) -> GaussianState:
-        """state deformed by D(x, tau) - D(x, 0) ([M] rows, taus [M, 1]): one network call on 2M rows.
+    def _anchored_forward(self, state: GaussianState, taus: Tensor, gaussians: Tensor | None = None) -> GaussianState:
+        """state deformed by D(x, tau) - D(x, 0) ([M] rows, taus [M, 1]): one network call.
 
+        D(x, 0) depends on the Gaussian only (its canonical centre), so with `gaussians` ([M]
+        long: the Gaussian each row is; `GaussianModel.deform_many` stacks a view and its partner)
+        it is evaluated once per distinct Gaussian: M + U rows instead of 2M (U <= M distinct).
         Rotations take the additive difference (4DGS's default `apply_rotation=False` adds its
         rotation delta, so this is exact there).
         """
         m = state.num_gaussians
-        doubled = state.index(torch.cat((torch.arange(m, device=taus.device),) * 2))
-        both = super().forward(doubled, torch.cat((taus, torch.zeros_like(taus))))
-        at, zero = both.index(slice(0, m)), both.index(slice(m, 2 * m))
-        # a field the network passed through has at - zero = 0 exactly: it is `state`'s own tensor
-        # (the identity keeps the forward and backward work off SH and opacity)
-        return GaussianState(*(
-            getattr(state, name) if getattr(both, name) is getattr(doubled, name)
-            else getattr(state, name) + (getattr(at, name) - getattr(zero, name))
-            for name in STATE_FIELDS))
+        rows = torch.arange(m, device=taus.device)
+        if gaussians is None:
+            zero_rows, back = rows, rows
+        else:
+            # one representative row per distinct Gaussian (the lowest: deterministic), and each row's one
+            distinct, back = torch.unique(gaussians, return_inverse=True)
+            zero_rows = torch.full((distinct.numel(),), m, device=taus.device).scatter_reduce(
+                0, back, rows, reduce="amin")
+        u = zero_rows.numel()
+        doubled = state.index(torch.cat((rows, zero_rows)))
+        both = super().forward(doubled, torch.cat((taus, taus.new_zeros(u, 1))))
+
+        def moved(name: str) -> Tensor:
+            value = getattr(both, name)
+            if value is getattr(doubled, name):
+                # passed through: at - zero = 0 exactly, so `state`'s own tensor (the identity
+                # keeps the forward and backward work off SH and opacity)
+                return getattr(state, name)
+            zero = value[m:] if gaussians is None else value[m:][back]
+            return getattr(state, name) + (value[:m] - zero)
+
+        return GaussianState(*(moved(name) for name in STATE_FIELDS))
 
     def _decode_static(self, state: GaussianState, rows: Tensor) -> GaussianState:
         deltas = self.static_decoder(state.means[rows])

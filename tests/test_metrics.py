@@ -117,6 +117,19 @@ def test_ssim_gradcheck():
     assert torch.autograd.gradcheck(ssim, (x, y), eps=1e-6, atol=1e-6)
 
 
+def test_ssim_gradcheck_with_a_constant_target():
+    """The training case (the target needs no gradient) takes its own path: gradcheck it too, and
+    its value and gradient equal the path that differentiates both images."""
+    img, gt = smooth_pair(h=8, w=9, c=2, seed=3)
+    x = img.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda a: ssim(a, gt), (x,), eps=1e-6, atol=1e-6)
+    value = ssim(x, gt)
+    (grad,) = torch.autograd.grad(value, x)
+    both = ssim(x, gt.clone().requires_grad_(True))
+    (grad_both,) = torch.autograd.grad(both, x)
+    torch.testing.assert_close(value, both, rtol=0, atol=1e-14)
+    torch.testing.assert_close(grad, grad_both, rtol=0, atol=1e-14)
+
 # --- LPIPS ------------------------------------------------------------------------------------
 
 def test_lpips_unavailable_without_package(monkeypatch):

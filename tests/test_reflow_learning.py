@@ -179,3 +179,36 @@ def test_deform_many_keeps_keyframe_windows_and_anchors_of_every_time():
     assert many[0].shs is many[1].shs
     torch.testing.assert_close(many[0].shs, model.deform(times[0], "fine").shs)
     assert (many[0].opacity_logits != many[1].opacity_logits).any()  # windows depend on the time
+
+
+def test_deform_many_evaluates_each_gaussians_anchor_once_with_the_same_values_and_gradients():
+    """D(x, 0) of a Gaussian deformed at two times is computed once (M + U network rows, not 2M);
+    values and parameter gradients equal two separate calls."""
+    model = _anchored_carpet_model(anchored=True)
+    n = model.num_gaussians
+    model.deformation.double()  # float64: D(x, t) - D(x, 0) cancels, float32 rounding would dominate
+    for name in ("_xyz", "_scaling", "_rotation", "_opacity", "_features_dc", "_features_rest"):
+        getattr(model, name).data = getattr(model, name).data.double()
+    with torch.no_grad():
+        for p in model.deformation.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    rows_seen: list[int] = []
+    model.deformation.deformation_net.register_forward_hook(lambda m, inputs, out: rows_seen.append(len(inputs[1])))
+    times = (-0.4, 0.3)
+    wrt = [model._xyz, *(p for p in model.deformation.parameters() if p.requires_grad)]
+    many = model.deform_many(times, "fine")
+    assert rows_seen == [2 * n + n]  # every Gaussian at both times, its anchor once
+    loss_many = sum((s.means.square().sum() + s.log_scales.sum() + s.rotations.sum()) for s in many)
+    grads_many = torch.autograd.grad(loss_many, wrt, allow_unused=True)
+    singles = [model.deform(t, "fine") for t in times]
+    assert rows_seen[1:] == [2 * n, 2 * n]  # a single time: nothing to share
+    for got, expected in zip(many, singles):
+        for field in ("means", "log_scales", "rotations"):
+            torch.testing.assert_close(getattr(got, field), getattr(expected, field), atol=1e-12, rtol=1e-10)
+    loss_single = sum((s.means.square().sum() + s.log_scales.sum() + s.rotations.sum()) for s in singles)
+    grads_single = torch.autograd.grad(loss_single, wrt, allow_unused=True)
+    for got, expected in zip(grads_many, grads_single):
+        if expected is None:
+            assert got is None or not got.any()
+        else:
+            torch.testing.assert_close(got, expected, atol=1e-10, rtol=1e-8)

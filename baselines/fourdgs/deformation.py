@@ -85,7 +85,8 @@ class DeformationModule(Protocol):
     and parameters and its ``deformation_table`` ([N] bool), rows aligned with ``state``
     (``GaussianModel.deformation_inputs``). 4DGS's network deforms every row. Rows must be deformed
     independently of each other: ``GaussianModel.deform_many`` stacks the state once per time and
-    makes one call. Optimizer groups "deformation" and "grid" are built from
+    makes one call (adding ``buffers["row_gaussian"]``, [kN] long: the Gaussian each row is, for
+    a term a module computes once per Gaussian). Optimizer groups "deformation" and "grid" are built from
     ``get_mlp_parameters()`` and ``get_grid_parameters()``.
     """
 

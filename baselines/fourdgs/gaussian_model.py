@@ -52,7 +52,7 @@ ROW_GROUPS: dict[str, str] = {
 GROUP_ORDER: tuple[str, ...] = ("xyz", "deformation", "grid", "f_dc", "f_rest", "opacity", "scaling", "rotation")
 STAGES: tuple[str, ...] = ("coarse", "fine")
 # Names the deformation module receives beside the registered buffers (see deformation_inputs).
-RESERVED_INPUTS: tuple[str, ...] = ("deformation_table",)
+RESERVED_INPUTS: tuple[str, ...] = ("deformation_table", "row_gaussian")
 CAPTURE_LENGTH_4DGS = 14
 
 
@@ -525,7 +525,9 @@ class GaussianModel:
     def deformation_inputs(self) -> Mapping[str, Tensor]:
         """What the deformation module receives besides the state and times: the registered
         per-Gaussian buffers and parameters, plus ``deformation_table`` ([N] bool, 4DGS's
-        "this Gaussian is deformed" flag; a module may skip the rows that are False)."""
+        "this Gaussian is deformed" flag; a module may skip the rows that are False).
+        ``deform_many`` adds ``row_gaussian`` ([kN] long: the Gaussian each of its repeated rows
+        is), so a module may compute a time-independent term once per Gaussian."""
         return MappingProxyType({**self._extra_buffers, **self._extra_params,
                                  "deformation_table": self._deformation_table})
 
@@ -570,6 +572,8 @@ class GaussianModel:
         column = torch.tensor(times, device=self.device, dtype=self._xyz.dtype).repeat_interleave(count).unsqueeze(1)
         # per-Gaussian inputs (registered buffers, deformation_table) follow the repeated rows
         inputs = {name: torch.cat([value] * len(times)) for name, value in self.deformation_inputs().items()}
+        # which Gaussian each repeated row is: a module may compute a time-independent term once per Gaussian
+        inputs["row_gaussian"] = torch.arange(count, device=self.device).repeat(len(times))
         out = self._deformation(repeated, column, inputs)
         # A field the module passed through unchanged (4DGS's disabled heads: SH, opacity) is the
         # canonical tensor at every time: its gradient then reaches the parameter directly instead
