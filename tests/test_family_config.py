@@ -111,3 +111,61 @@ def test_background_follows_the_family_unless_set(tmp_path, tiny_scene):
     saved = json.loads((tmp_path / "b" / "config.json").read_text())
     assert saved["ModelParams"]["white_background"] is False  # render.py sees the same
     assert build_trainer(["-s", str(capture), "-m", str(tmp_path / "c"), "-w", *run]).args.model.white_background
+
+
+def _time_cells_sampled(times: list[float], cells: int) -> set[int]:
+    """The temporal cells bilinear sampling reads at `times` in [0, 1] (4DGS: the upper half of [-1, 1])."""
+    out = set()
+    for t in times:
+        position = (t + 1.0) / 2.0 * (cells - 1)
+        low = min(int(np.floor(position)), cells - 2)
+        out |= {low, low + 1} if position > low else {low}
+    return out
+
+
+@pytest.mark.parametrize("config_cells, frames, expected", [
+    (96, 12, 6), (150, 49, 25), (150, 60, 30), (12, 36, 12), (12, 24, 12), (150, 3, 2), (150, 1, 2), (75, 150, 75),
+])
+def test_time_cells_follow_half_the_frames_when_fewer(config_cells, frames, expected):
+    from baselines.fourdgs.family_config import fit_time_cells
+
+    assert fit_time_cells(config_cells, frames) == expected
+
+
+def test_fitted_time_cells_put_held_out_times_on_trained_cells():
+    """Why the rule: 12 frames, every 8th held out (0 and 8). On the NVIDIA file's 96 cells the held-out
+    times read cells no training time reads (untrained: the deformation there is its initial value);
+    on the fitted 6 every cell a held-out time reads is also read by training times."""
+    from baselines.fourdgs.family_config import fit_time_cells
+
+    times = [i / 11 for i in range(12)]
+    held, train = [times[0], times[8]], [t for i, t in enumerate(times) if i % 8]
+    assert _time_cells_sampled(held, 96) - _time_cells_sampled(train, 96)
+    fitted = fit_time_cells(96, len(times))
+    assert _time_cells_sampled(held, fitted) <= _time_cells_sampled(train, fitted)
+
+
+def test_a_short_capture_gets_fitted_time_cells_unless_the_user_sets_them(tmp_path, tiny_scene):
+    """Through build_trainer on a 12-frame NVIDIA capture: the family file's 96 time cells become 6 (in
+    config.json, so render.py rebuilds the same model); --kplanes_config or --configs keep theirs."""
+    import shutil
+
+    from baselines.fourdgs.app import build_trainer
+
+    capture = tmp_path / "capture"
+    shutil.copytree(tiny_scene, capture, ignore=shutil.ignore_patterns("scene.json"))
+    run = ["--quiet", "--iterations", "1", "--coarse_iterations", "1"]
+    fitted = build_trainer(["-s", str(capture), "-m", str(tmp_path / "a"), *run])
+    assert fitted.args.hidden.kplanes_config["resolution"] == [64, 64, 64, 6]
+    saved = json.loads((tmp_path / "a" / "config.json").read_text())
+    assert saved["ModelHiddenParams"]["kplanes_config"]["resolution"] == [64, 64, 64, 6]
+    assert "fitted to 12 frames" in saved["_sources"]["ModelHiddenParams.kplanes_config"]
+    fitted.build()
+    time_plane = fitted.ctx.model.deformation.deformation_net.grid.grids[0][2]  # (x, t): [1, C, T, X]
+    assert time_plane.shape[-2] == 6
+    explicit = build_trainer(["-s", str(capture), "-m", str(tmp_path / "b"), *run,
+                              "--kplanes_config", "{'resolution': [64, 64, 64, 96]}"])
+    assert explicit.args.hidden.kplanes_config["resolution"][3] == 96
+    configured = build_trainer(["-s", str(capture), "-m", str(tmp_path / "c"), *run,
+                                "--configs", str(CONFIG_ROOT / "nvidia" / "default.py")])
+    assert configured.args.hidden.kplanes_config["resolution"][3] == 96

@@ -25,7 +25,8 @@ from baselines.run_folder import (FolderPlan, RunFolder, RunIdentity, TrainingIn
                                   RunLock, check_saved_iteration, check_typed_model_path, default_model_path, require_run_record)
 
 from .evaluate import EvalResult, evaluate_cameras, render_video, write_metrics
-from .family_config import dataset_family, default_config, family_background, log_decision, strip_bare_defaults
+from .family_config import (dataset_family, default_config, family_background, fit_time_cells, log_decision,
+                            strip_bare_defaults)
 from .plugins import Plugin, load_plugin_class, resolve_components
 from .trainer import Trainer, TrainResult
 
@@ -135,6 +136,8 @@ def _load_and_claim(args, folder: RunFolder, source: Path, embedded: bool, plugi
                 if scene.test_cameras else "")
         raise ValueError(f"{source}: {len(scene.train_cameras)} training frame(s)"
                          f"{_frame_needs(plugins, len(scene.train_cameras))}{held}")
+    if decision is not None and decision.path is not None:
+        _fit_time_cells(args, scene)
     model_path = folder.path
     folder.commit()
     try:
@@ -151,6 +154,23 @@ def _load_and_claim(args, folder: RunFolder, source: Path, embedded: bool, plugi
         raise
     trainer.run_folder = folder
     return trainer
+
+
+def _fit_time_cells(args, scene) -> None:
+    """The family config's temporal HexPlane resolution fitted to the capture's frame count
+    (family_config.fit_time_cells), unless the command line set ``--kplanes_config``."""
+    key = "ModelHiddenParams.kplanes_config"
+    resolution = list(args.hidden.kplanes_config.get("resolution", []))
+    if args.sources.get(key) == "command line" or len(resolution) != 4:
+        return
+    times = {round(float(c.time), 9) for c in (*scene.train_cameras, *scene.test_cameras)}
+    cells = fit_time_cells(resolution[3], len(times))
+    if cells == resolution[3]:
+        return
+    log.info("HexPlane time cells: %d (half of the capture's %d frame times; the config's %d would leave "
+             "held-out times on untrained cells; --kplanes_config sets them)", cells, len(times), resolution[3])
+    args.hidden.kplanes_config = {**args.hidden.kplanes_config, "resolution": [*resolution[:3], cells]}
+    args.sources[key] = f"{args.sources.get(key, 'default')}, time cells fitted to {len(times)} frames"
 
 
 def reader_options(source: Path | str, model) -> dict:

@@ -20,6 +20,15 @@ of a hand-held video) -> ``hypernerf``'s file, 4DGS's config for monocular real 
 moving camera. The choice is logged and recorded in the run's ``config.json``
 (``_default_config``).
 
+The HexPlane's temporal resolution follows the capture too (``fit_time_cells``): a family file
+holds one value for its datasets' usual length (4DGS's rule of thumb, which its per-scene files
+follow: about half the number of frames), so a shorter capture gets half its frame count when that
+is fewer. With more cells than that, the cells around a held-out time lie between the ones the
+training frames sample and get no photometric gradient: the held-out view is rendered with an
+untrained deformation (NVIDIA Balloon1, 12 frames on the NVIDIA file's 96 cells: both held-out
+times sat on cells still at their initial value after 1000 iterations). Only the automatic choice
+is adapted; ``--configs`` and ``--kplanes_config`` keep their value.
+
 The background colour follows the family too when neither a flag (``-w`` /
 ``--no-white_background``) nor a config file sets it: black for real captures (``nvidia``,
 ``hypernerf``, ``colmap``: white would show where nothing is reconstructed), white for ``dnerf``
@@ -66,6 +75,16 @@ class DefaultConfig:
 
     def as_dict(self) -> dict:
         return {"path": str(self.path) if self.path else None, "family": self.family, "reason": self.reason}
+
+
+MIN_TIME_CELLS = 2  # bilinear sampling along time needs two cells
+
+
+def fit_time_cells(config_cells: int, num_times: int) -> int:
+    """The temporal resolution for a capture of ``num_times`` distinct frame times: the config's
+    ``config_cells``, lowered to half the frame count (rounded up, at least ``MIN_TIME_CELLS``) when
+    that is fewer (see the module docstring)."""
+    return min(int(config_cells), max(MIN_TIME_CELLS, -(-int(num_times) // 2)))
 
 
 def is_simulator_scene(source: Path) -> bool:
