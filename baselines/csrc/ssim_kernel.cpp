@@ -59,6 +59,7 @@ void filter_rows(const Shape& s, const T* taps, int64_t h0, int64_t h1, Fill&& f
     std::vector<T> source(static_cast<size_t>(M * padded), T(0));
     std::vector<T> ring(static_cast<size_t>(kTaps * M * n));
     std::vector<T> sums(static_cast<size_t>(M * n));
+    const std::vector<T> zero(static_cast<size_t>(M * n), T(0));
     T g[kTaps];
     for (int k = 0; k < kTaps; ++k) g[k] = taps[k];
     T* rows[M];
@@ -86,14 +87,16 @@ void filter_rows(const Shape& s, const T* taps, int64_t h0, int64_t h1, Fill&& f
     for (int m = 0; m < M; ++m) out[m] = sums.data() + m * n;
     for (int64_t h = h0; h < h1; ++h) {
         if (h + kRadius < s.h) horizontal(h + kRadius);
-        std::fill(sums.begin(), sums.end(), T(0));
-        for (int k = 0; k < kTaps; ++k) {  // rows outside the image are zero: skipped
+        const T* tap_rows[kTaps];  // rows outside the image read the zero row (the zero padding)
+        for (int k = 0; k < kTaps; ++k) {
             const int64_t r = h + k - kRadius;
-            if (r < 0 || r >= s.h) continue;
-            const T gk = g[k];
-            const T* slot = ring.data() + (r % kTaps) * M * n;
-            T* acc = sums.data();
-            for (int64_t i = 0; i < M * n; ++i) acc[i] += gk * slot[i];
+            tap_rows[k] = (r < 0 || r >= s.h) ? zero.data() : ring.data() + (r % kTaps) * M * n;
+        }
+        T* acc = sums.data();
+        for (int64_t i = 0; i < M * n; ++i) {  // all taps in a register: one store per value
+            T v = T(0);
+            for (int k = 0; k < kTaps; ++k) v += g[k] * tap_rows[k][i];
+            acc[i] = v;
         }
         finish(h, out);
     }
@@ -150,36 +153,57 @@ void forward_unit(const Shape& s, const T* x, const T* y, const T* taps, T c1, T
                   int64_t h1, T* out, T* p_a, T* p_b, T* p_c) {
     const int64_t n = s.row(), base = b * s.image();
     auto fill = [&](int64_t r, T* const* rows) {
-        const T* xr = x + base + r * n;
-        const T* yr = y + base + r * n;
+        const T* __restrict__ xr = x + base + r * n;
+        const T* __restrict__ yr = y + base + r * n;
+        T* __restrict__ r0 = rows[0];
+        T* __restrict__ r1 = rows[1];
+        T* __restrict__ r2 = rows[2];
+        T* __restrict__ r3 = rows[3];
+        T* __restrict__ r4 = rows[4];
         for (int64_t i = 0; i < n; ++i) {
             const T xv = xr[i], yv = yr[i];
-            rows[0][i] = xv;
-            rows[1][i] = yv;
-            rows[2][i] = xv * xv;
-            rows[3][i] = yv * yv;
-            rows[4][i] = xv * yv;
+            r0[i] = xv;
+            r1[i] = yv;
+            r2[i] = xv * xv;
+            r3[i] = yv * yv;
+            r4[i] = xv * yv;
         }
     };
     auto finish = [&](int64_t h, const T* const* m) {
         const int64_t at = base + h * n;
-        for (int64_t i = 0; i < n; ++i) {
-            const T mu_x = m[0][i], mu_y = m[1][i];
-            const T mu_xx = mu_x * mu_x, mu_yy = mu_y * mu_y, mu_xy = mu_x * mu_y;
-            const T var_x = m[2][i] - mu_xx, var_y = m[3][i] - mu_yy, cov = m[4][i] - mu_xy;
-            const T n1 = T(2) * mu_xy + c1, n2 = T(2) * cov + c2;
-            const T d1 = mu_xx + mu_yy + c1, d2 = var_x + var_y + c2;
-            const T den = d1 * d2;
-            const T ssim = (n1 * n2) / den;
-            out[at + i] = ssim;
-            if (p_a != nullptr) {
-                const T d_mu = T(2) * (mu_y * n2 - ssim * mu_x * d2) / den;
-                const T d_var = -ssim / d2;
-                const T d_cov = T(2) * n1 / den;
-                p_a[at + i] = d_mu - T(2) * mu_x * d_var - mu_y * d_cov;
-                p_b[at + i] = T(2) * d_var;
-                p_c[at + i] = d_cov;
+        const T* __restrict__ m0 = m[0];
+        const T* __restrict__ m1 = m[1];
+        const T* __restrict__ m2 = m[2];
+        const T* __restrict__ m3 = m[3];
+        const T* __restrict__ m4 = m[4];
+        T* __restrict__ o = out + at;
+        if (p_a == nullptr) {  // no gradient wanted: the map alone
+            for (int64_t i = 0; i < n; ++i) {
+                const T mu_x = m0[i], mu_y = m1[i];
+                const T mu_xx = mu_x * mu_x, mu_yy = mu_y * mu_y, mu_xy = mu_x * mu_y;
+                const T var_x = m2[i] - mu_xx, var_y = m3[i] - mu_yy, cov = m4[i] - mu_xy;
+                o[i] = ((T(2) * mu_xy + c1) * (T(2) * cov + c2)) / ((mu_xx + mu_yy + c1) * (var_x + var_y + c2));
             }
+            return;
+        }
+        T* __restrict__ pa = p_a + at;
+        T* __restrict__ pb = p_b + at;
+        T* __restrict__ pc = p_c + at;
+        for (int64_t i = 0; i < n; ++i) {
+            const T mu_x = m0[i], mu_y = m1[i];
+            const T mu_xx = mu_x * mu_x, mu_yy = mu_y * mu_y, mu_xy = mu_x * mu_y;
+            const T var_x = m2[i] - mu_xx, var_y = m3[i] - mu_yy, cov = m4[i] - mu_xy;
+            const T n1 = T(2) * mu_xy + c1, n2 = T(2) * cov + c2;
+            const T d2 = var_x + var_y + c2;
+            const T den = (mu_xx + mu_yy + c1) * d2;
+            const T ssim = (n1 * n2) / den;
+            o[i] = ssim;
+            const T d_mu = T(2) * (mu_y * n2 - ssim * mu_x * d2) / den;
+            const T d_var = -ssim / d2;
+            const T d_cov = T(2) * n1 / den;
+            pa[i] = d_mu - T(2) * mu_x * d_var - mu_y * d_cov;
+            pb[i] = T(2) * d_var;
+            pc[i] = d_cov;
         }
     };
     filter_rows<T, 5>(s, taps, h0, h1, fill, finish);
@@ -191,16 +215,28 @@ void backward_unit(const Shape& s, const T* x, const T* y, const T* taps, const 
     const int64_t n = s.row(), base = b * s.image();
     auto fill = [&](int64_t r, T* const* rows) {
         const int64_t at = base + r * n;
+        const T* __restrict__ g = grad + at;
+        const T* __restrict__ pa = p_a + at;
+        const T* __restrict__ pb = p_b + at;
+        const T* __restrict__ pc = p_c + at;
+        T* __restrict__ r0 = rows[0];
+        T* __restrict__ r1 = rows[1];
+        T* __restrict__ r2 = rows[2];
         for (int64_t i = 0; i < n; ++i) {
-            const T g = grad[at + i];
-            rows[0][i] = g * p_a[at + i];
-            rows[1][i] = g * p_b[at + i];
-            rows[2][i] = g * p_c[at + i];
+            r0[i] = g[i] * pa[i];
+            r1[i] = g[i] * pb[i];
+            r2[i] = g[i] * pc[i];
         }
     };
     auto finish = [&](int64_t h, const T* const* m) {
         const int64_t at = base + h * n;
-        for (int64_t i = 0; i < n; ++i) grad_x[at + i] = m[0][i] + x[at + i] * m[1][i] + y[at + i] * m[2][i];
+        const T* __restrict__ m0 = m[0];
+        const T* __restrict__ m1 = m[1];
+        const T* __restrict__ m2 = m[2];
+        const T* __restrict__ xr = x + at;
+        const T* __restrict__ yr = y + at;
+        T* __restrict__ gx = grad_x + at;
+        for (int64_t i = 0; i < n; ++i) gx[i] = m0[i] + xr[i] * m1[i] + yr[i] * m2[i];
     };
     filter_rows<T, 3>(s, taps, h0, h1, fill, finish);
 }
