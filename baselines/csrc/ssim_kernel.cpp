@@ -50,8 +50,8 @@ struct Shape {
 };
 
 // Separable 'same' filtering of M planes of one image over output rows [h0, h1).
-//   fill(r, rows): writes the M source rows r (each W * C values) at rows[m] + kRadius * C; the
-//                  kRadius * C values on either side stay zero (the zero padding);
+//   fill(r, rows): writes row r of each of the M source planes into rows[m][0, W * C); each buffer
+//                  has kRadius * C zeros on either side that stay zero (the zero padding);
 //   finish(h, sums): receives the M filtered rows h (each W * C values).
 template <typename T, int M, typename Fill, typename Finish>
 void filter_rows(const Shape& s, const T* taps, int64_t h0, int64_t h1, Fill&& fill, Finish&& finish) {
