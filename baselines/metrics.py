@@ -93,7 +93,24 @@ def ssim_map(img: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
 
     img, gt: [H, W, C] or [B, H, W, C]. Returns the same shape. Near the border (5 pixels) the
     zero padding biases local statistics, as in 3DGS; scikit-image instead crops that band.
+    The compiled CPU kernel (baselines/ssim_kernel.py) where it can run (CPU, float32/float64,
+    gt needing no gradient), else :func:`ssim_map_torch`.
     """
+    from baselines import ssim_kernel  # a compiled library behind ctypes: loaded on first use
+
+    x, y, batched = _as_batch(img, gt, "ssim")
+    reason = ssim_kernel.unusable_reason(x, y)
+    if reason is not None:
+        ssim_kernel.log_fallback_once(reason)
+        return ssim_map_torch(img, gt)
+    g = gaussian_window_1d(dtype=x.dtype, device=x.device)
+    out = ssim_kernel.ssim_map_kernel(x, y, g, SSIM_C1, SSIM_C2)
+    return out if batched else out[0]
+
+
+def ssim_map_torch(img: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """:func:`ssim_map` in torch (grouped separable convolutions): the oracle of the compiled
+    kernel's tests and its fallback; differentiable with respect to both images."""
     x, y, batched = _as_batch(img, gt, "ssim")
     b, h, w, c = x.shape
     # channels-first; the five local moments go through one grouped, separable convolution

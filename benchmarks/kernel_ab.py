@@ -8,9 +8,10 @@ then fine iterations run in blocks of `--iters`, one block per variant, the vari
 alternating round by round, so a busy machine (the 2-core machine is shared) slows every variant
 alike. The variants switch kernels by their environment switches, which are read at each call:
 
-    torch      REFLOW4DGS_PROJECT_KERNEL=0, REFLOW4DGS_FLOW_KERNEL=0 (the torch twins)
+    torch      REFLOW4DGS_PROJECT_KERNEL=0, REFLOW4DGS_FLOW_KERNEL=0, REFLOW4DGS_SSIM_KERNEL=0 (the torch twins)
     project    the compiled projection (baselines/render/project_kernel.py) alone
     project+flow   and ReFlow's compiled flow channels (reflow_plugin/flow_kernel.py)
+    project+flow+ssim  and the compiled SSIM map (baselines/ssim_kernel.py)
 
 `--baseline` also measures the same arguments without the plugin (profile_step.baseline_argv) at
 the plugin run's Gaussian count. Prints the medians and the ratios to `torch`; asserts nothing.
@@ -33,9 +34,11 @@ from benchmarks.machine import cpu_model, load_average  # noqa: E402
 from baselines.thread_policy import apply_thread_policy  # noqa: E402
 
 VARIANTS = {
-    "torch": {"REFLOW4DGS_PROJECT_KERNEL": "0", "REFLOW4DGS_FLOW_KERNEL": "0"},
-    "project": {"REFLOW4DGS_PROJECT_KERNEL": "1", "REFLOW4DGS_FLOW_KERNEL": "0"},
-    "project+flow": {"REFLOW4DGS_PROJECT_KERNEL": "1", "REFLOW4DGS_FLOW_KERNEL": "1"},
+    "torch": {"REFLOW4DGS_PROJECT_KERNEL": "0", "REFLOW4DGS_FLOW_KERNEL": "0", "REFLOW4DGS_SSIM_KERNEL": "0"},
+    "project": {"REFLOW4DGS_PROJECT_KERNEL": "1", "REFLOW4DGS_FLOW_KERNEL": "0", "REFLOW4DGS_SSIM_KERNEL": "0"},
+    "project+flow": {"REFLOW4DGS_PROJECT_KERNEL": "1", "REFLOW4DGS_FLOW_KERNEL": "1", "REFLOW4DGS_SSIM_KERNEL": "0"},
+    "project+flow+ssim": {"REFLOW4DGS_PROJECT_KERNEL": "1", "REFLOW4DGS_FLOW_KERNEL": "1",
+                          "REFLOW4DGS_SSIM_KERNEL": "1"},
 }
 
 
