@@ -209,13 +209,24 @@ def test_incoming_gradient_accumulation_and_a_retained_graph(compiled, monkeypat
         value.backward()
 
 
-def test_no_gradient_wanted_gives_the_same_value(compiled, monkeypatch):
+def test_no_gradient_wanted_gives_the_same_value_without_computing_gradients(compiled, monkeypatch):
     field = _field(torch.float32, seed=5)
     monkeypatch.setenv(regularization_kernel.ENV_SWITCH, "1")
+    wanted = []
+    run_kernel = regularization_kernel.run_kernel
+
+    def spy(planes, smooth, l1, need_grad, num_threads=None):
+        wanted.append(any(need_grad))
+        return run_kernel(planes, smooth, l1, need_grad, num_threads)
+
+    monkeypatch.setattr(regularization_kernel, "run_kernel", spy)
     with_graph = hexplane_regularization(field.grids, *WEIGHTS)
     with torch.no_grad():
         without = hexplane_regularization(field.grids, *WEIGHTS)
+    detached = hexplane_regularization([[p.detach() for p in level] for level in field.grids], *WEIGHTS)
     assert without.grad_fn is None and torch.equal(without, with_graph.detach())
+    assert detached.grad_fn is None and torch.equal(detached, without)
+    assert wanted == [True, False, False]
 
 
 def test_results_do_not_depend_on_the_thread_count(compiled):

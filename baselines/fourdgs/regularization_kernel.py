@@ -96,10 +96,21 @@ def _has_term(plane: Tensor, smooth: float, l1: float) -> bool:
     return (smooth != 0 and plane.shape[-2] >= 3) or l1 != 0
 
 
+def _non_overlapping_and_dense(tensor: Tensor) -> bool:
+    """Whether the tensor's values fill one block of memory, each once, in some dimension order
+    (then ``empty_like`` gives its gradient the same strides)."""
+    expected = 1
+    for stride, size in sorted((st, sz) for sz, st in zip(tensor.shape, tensor.stride()) if sz != 1):
+        if stride != expected:
+            return False
+        expected *= size
+    return True
+
+
 def _dense(plane: Tensor) -> Tensor:
-    """The plane itself when its gradient can share its strides (non-overlapping and dense, e.g. a
-    view of the shared table), else a contiguous copy (expanded or sliced planes)."""
-    return plane if torch.empty_like(plane).stride() == plane.stride() else plane.contiguous()
+    """The plane itself when its gradient can share its strides (e.g. a view of the shared
+    table), else a contiguous copy (expanded or sliced planes)."""
+    return plane if _non_overlapping_and_dense(plane) else plane.contiguous()
 
 
 def run_kernel(planes: Sequence[Tensor], smooth_weights: Sequence[float], l1_weights: Sequence[float],
@@ -169,5 +180,9 @@ def weighted_plane_regularisation(smooth_weights: Sequence[float], l1_weights: S
     """0-dim total of the weighted regularisers over `planes` by the kernel (the caller checks
     `unusable_reason` first); differentiable with respect to every plane."""
     threads = int(num_threads or torch.get_num_threads())
-    return _KernelRegularisation.apply((tuple(map(float, smooth_weights)), tuple(map(float, l1_weights)), threads),
-                                       *planes)
+    smooth, l1 = tuple(map(float, smooth_weights)), tuple(map(float, l1_weights))
+    if not (torch.is_grad_enabled() and any(p.requires_grad for p in planes)):
+        # no graph (evaluation, no_grad): the value alone, no gradient written
+        total, _ = run_kernel(planes, smooth, l1, [False] * len(planes), threads)
+        return planes[0].new_full((), total)
+    return _KernelRegularisation.apply((smooth, l1, threads), *planes)
