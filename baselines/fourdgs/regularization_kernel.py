@@ -54,7 +54,7 @@ LIBRARY = native_build.NativeLibrary("regularization_kernel", SOURCE, ABI_VERSIO
 
 def disabled_by_env() -> str | None:
     """The reason the regularisation kernel is switched off by the environment, or None."""
-    return native_build.switched_off_by_env("the compiled plane regularisers", ENV_SWITCH, ENV_ALL_KERNELS)
+    return native_build.switched_off_by_env("the compiled regularisation kernel", ENV_SWITCH, ENV_ALL_KERNELS)
 
 
 def unusable_reason(planes: Sequence[Tensor]) -> str | None:
