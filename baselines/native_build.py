@@ -17,8 +17,8 @@ do not link torch). Each build writes into a private temporary directory and is 
 with an atomic rename, so processes that build at the same time (pytest-xdist, two trainings)
 never see a torn file. Users: baselines/render/kernel.py (compositing),
 baselines/render/project_kernel.py (EWA projection), baselines/fourdgs/plane_kernel.py (HexPlane
-lookups), baselines/ssim_kernel.py (the SSIM map) and reflow_plugin/flow_kernel.py (ReFlow's
-per-Gaussian flow channels).
+lookups), baselines/fourdgs/regularization_kernel.py (HexPlane regularisers), baselines/ssim_kernel.py
+(the SSIM map) and reflow_plugin/flow_kernel.py (ReFlow's per-Gaussian flow channels).
 """
 from __future__ import annotations
 

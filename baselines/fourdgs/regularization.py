@@ -15,6 +15,10 @@
 backward take; with 4DGS's default model the planes hold 36M values and the regularisers were
 the largest part of a step's non-raster cost). ``hexplane_regularization_reference`` is the same
 sum written with the formulas above, the test oracle (equal to float rounding).
+
+On float32 / float64 CPU planes ``hexplane_regularization`` runs the compiled kernel of
+``regularization_kernel.py`` (value and gradient in one pass over the planes; the torch Function
+here is its oracle and its fallback: ``REFLOW4DGS_REG_KERNEL=0``, no compiler, other devices).
 """
 
 from __future__ import annotations
@@ -24,6 +28,8 @@ from collections.abc import Iterable, Sequence
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
+
+from baselines.fourdgs import regularization_kernel
 
 # Plane order of a 4D HexPlane level: itertools.combinations(range(4), 2) ->
 # (x,y) (x,z) (x,t) (y,z) (y,t) (z,t).
@@ -118,6 +124,10 @@ def hexplane_regularization(
             l1.append(float(l1_time_planes_weight) if time_plane else 0.0)
     if not planes:  # on the planes' device: the trainer stacks it with the other loss terms
         return torch.zeros((), device=device)
+    reason = regularization_kernel.unusable_reason(planes)
+    if reason is None:
+        return regularization_kernel.weighted_plane_regularisation(smooth, l1, planes)
+    regularization_kernel.log_fallback_once(reason)
     return _WeightedPlaneRegularisation.apply(tuple(smooth), tuple(l1), *planes)
 
 
