@@ -71,6 +71,8 @@ class MaskReport:
     pairs: list[list[int]] = field(default_factory=list)  # neighbours used per frame
     coverage: list[float] = field(default_factory=list)  # masked fraction per frame
     epipolar_only: bool = True
+    # per frame [H, W] float32 normalised score (0 = no evidence), only when asked (keep_scores)
+    scores: list[np.ndarray] = field(default_factory=list)
 
 
 def relative_pose(viewmat_a: np.ndarray, viewmat_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -202,12 +204,15 @@ def _frame_scores(images: Sequence[np.ndarray], a: int, offsets: Sequence[int], 
 
 
 def masks_from_pair_errors(images: Sequence[np.ndarray], pair_error: PairError,
-                           options: MotionMaskOptions | None = None) -> tuple[list[np.ndarray], MaskReport]:
+                           options: MotionMaskOptions | None = None,
+                           keep_scores: bool = False) -> tuple[list[np.ndarray], MaskReport]:
     """Masks of `images` from a per-pair static-scene error (the recipe of the module docstring).
 
     `pair_error(a, b, flow_a_to_b)` returns [H, W] pixels: how far each pixel of frame a lands
     from where a static scene allows in frame b (camera-aware here; `baselines.prepare.masks`
-    passes an uncalibrated, fitted-geometry version). Images must share one size.
+    passes an uncalibrated, fitted-geometry version). Images must share one size. `keep_scores`:
+    `report.scores` holds each frame's normalised score (the median over its pairs, see
+    `_frame_scores`), for refinements that need to know which pixels the geometry calls static.
     """
     options = options or MotionMaskOptions()
     n = len(images)
@@ -222,6 +227,8 @@ def masks_from_pair_errors(images: Sequence[np.ndarray], pair_error: PairError,
     for a in range(n):
         score, raw_score, pairs = _frame_scores(images, a, options.offsets, pair_error, options.min_scale_px)
         report.pairs[a] = pairs
+        if keep_scores:
+            report.scores.append(score.astype(np.float32))
         moving = (score > options.threshold) & (raw_score > options.min_error_px)
         if options.slow_offsets:
             slow, slow_raw, _ = _frame_scores(images, a, options.slow_offsets, pair_error, options.min_scale_px)
