@@ -264,8 +264,11 @@ def _holds_run(folder: Path) -> bool:
     return any(CHECKPOINT_PATTERN.fullmatch(p.name) for p in folder.iterdir())
 
 
-def _writable_error(folder: Path) -> str | None:
+def _writable_error(folder: Path, attempts_left: int = 2) -> str | None:
     """Why `folder` (existing, or to be created) cannot be written, or None.
+
+    Two runs started at the same moment probe the same missing folder: a folder the other one
+    created is used (and left to it), and one it removed again is probed anew (`attempts_left`).
 
     Really tries (access() says yes to root on a read-only or immutable folder): creates the
     missing folders and a probe file, then removes all of them again.
@@ -280,11 +283,20 @@ def _writable_error(folder: Path) -> str | None:
     created: list[Path] = []
     try:
         for path in reversed(missing):
-            path.mkdir()
+            try:
+                path.mkdir()
+            except FileExistsError:
+                if not path.is_dir():
+                    raise
+                continue  # another process (a second run started at the same moment) made it: not ours to remove
             created.append(path)
         fd, name = tempfile.mkstemp(dir=folder, prefix=".write_probe.")
         os.close(fd)
         os.unlink(name)
+    except FileNotFoundError as err:
+        if attempts_left > 0 and err.filename is not None:  # a racing probe removed a folder it had made
+            return _writable_error(folder, attempts_left - 1)
+        return f"cannot create {err.filename or folder} ({err.strerror or err})"
     except OSError as err:
         where = f"cannot create {err.filename or folder}" if len(created) < len(missing) else "cannot write into it"
         return f"{where} ({err.strerror or err})"

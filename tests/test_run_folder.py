@@ -220,3 +220,40 @@ def test_lock_survives_another_run_removing_the_folder_mid_mkdir(tmp_path, monke
     (tmp_path / "file").write_text("x")
     with pytest.raises(RunFolderError, match="cannot create it"):
         RunLock(tmp_path / "file").acquire()
+
+
+def test_write_probe_of_a_folder_another_run_creates_or_removes_at_the_same_moment(tmp_path, monkeypatch):
+    """The writability probe of a missing folder: another run creating it between our exists() and
+    mkdir() (FileExistsError) leaves it to that run; that run removing the folder it probed just
+    before our probe file (FileNotFoundError) is probed again; neither is "cannot create"."""
+    import tempfile as tempfile_module
+
+    from baselines.run_folder import _writable_error
+
+    folder = tmp_path / "out"
+    real_mkdir, real_mkstemp = Path.mkdir, tempfile_module.mkstemp
+
+    def other_run_made_it(self, *args, **kwargs):
+        if self == folder:
+            real_mkdir(self)  # the other process wins the race
+            raise FileExistsError(errno.EEXIST, "File exists", str(self))
+        return real_mkdir(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "mkdir", other_run_made_it)
+    assert _writable_error(folder) is None
+    assert folder.is_dir()  # not ours: not removed by the probe's clean-up
+    monkeypatch.setattr(Path, "mkdir", real_mkdir)
+    folder.rmdir()
+    removed = []
+
+    def other_run_removed_it(*args, **kwargs):
+        if not removed:
+            removed.append(True)
+            raise FileNotFoundError(errno.ENOENT, "No such file or directory", str(folder / ".write_probe.x"))
+        return real_mkstemp(*args, **kwargs)
+
+    monkeypatch.setattr(tempfile_module, "mkstemp", other_run_removed_it)
+    assert _writable_error(folder) is None and removed
+    assert not folder.exists()  # our own probe folder is cleaned up
+    (tmp_path / "file").write_text("x")
+    assert "is a file" in _writable_error(tmp_path / "file" / "sub")
