@@ -167,8 +167,8 @@ def _fit_time_cells(args, scene) -> None:
     cells = fit_time_cells(resolution[3], len(times))
     if cells == resolution[3]:
         return
-    log.info("HexPlane time cells: %d (half of the capture's %d frame times; the config's %d would leave "
-             "held-out times on untrained cells; --kplanes_config sets them)", cells, len(times), resolution[3])
+    log.info("HexPlane time cells: %d (half of the capture's %d frame times; with the config's %d, cells between "
+             "the training frames' times get no gradient; --kplanes_config sets them)", cells, len(times), resolution[3])
     args.hidden.kplanes_config = {**args.hidden.kplanes_config, "resolution": [*resolution[:3], cells]}
     args.sources[key] = f"{args.sources.get(key, 'default')}, time cells fitted to {len(times)} frames"
 
