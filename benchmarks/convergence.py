@@ -5,6 +5,7 @@
                                      [--coarse_iterations 3000] [--resolution nvidia_balloon1=8,...]
                                      [--data data/real] [--out output/convergence] [--seed 0]
                                      [--plot docs/images/convergence.png] [--report-only]
+                                     [--jobs 1] [--chunk-seconds S] [--images DIR]
                                      [-- extra train.py flags]
 
 Each (capture, method, budget) is an ordinary `train.py` run made by `real_suite.run_one` (same
@@ -12,7 +13,10 @@ run folders, `real_done.json` done-markers holding the exact command and the cod
 masked metrics with the dataset's true masks) in `OUT/<capture>/<method>/fine_<budget>`. A killed
 study reruns only the runs without a done-marker; `--report-only` trains nothing and tabulates
 what is done. Runs go longest budget first (the most informative figures land first when time
-runs out), one at a time.
+runs out), `--jobs` at a time (one thread each when more than one: on a GPU, where a step at these
+sizes is bound by kernel launches, several trainings share the device well). `--images DIR`
+writes the side-by-side held-out images (ground truth | baseline | ReFlow) of each capture's
+longest budget that every method finished, as real_suite.py does.
 
 The schedule rule. The family configs (NVIDIA, panoptic and prepared clips: 4DGS's
 arguments/hypernerf/default.py over OptimizationParams' defaults) are written for 14,000 fine
@@ -42,6 +46,7 @@ import dataclasses
 import json
 import os
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -169,6 +174,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--chunk-seconds", type=float, metavar="S",
                         help="train at most about S seconds in this call, then checkpoint and exit 3; the next "
                              "call continues (real_suite.py --chunk-seconds)")
+    parser.add_argument("--jobs", type=int, default=1, help="trainings at once (one thread each when > 1)")
+    parser.add_argument("--images", type=Path, help="write real_<capture>.jpg side-by-side images here")
     return parser
 
 
@@ -179,6 +186,8 @@ def main(argv: list[str] | None = None) -> int:
         extra, argv = argv[argv.index("--") + 1:], argv[:argv.index("--")]
     args = build_parser().parse_args(argv)
     try:
+        if args.jobs < 1:
+            raise CaptureError(f"--jobs {args.jobs}: want 1 or more trainings at once")
         captures = select(args.captures)
         methods = [m for m in args.methods.split(",") if m]
         unknown = [m for m in methods if m not in real_suite.METHODS]
@@ -196,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
     except CaptureError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
-    threads = int(os.environ.get("OMP_NUM_THREADS", "0")) or max(1, os.cpu_count() or 1)
+    threads = 1 if args.jobs > 1 else int(os.environ.get("OMP_NUM_THREADS", "0")) or max(1, os.cpu_count() or 1)
     jobs = sorted(((c, m, b) for c in captures for m in methods for b in budgets), key=lambda j: -j[2])
     outcome: dict[tuple[str, str, int], Path | str] = {}
 
@@ -212,16 +221,22 @@ def main(argv: list[str] | None = None) -> int:
             outcome = {(c.name, m, b): run_folder(args.out, c.name, m, b) for c, m, b in jobs
                        if (run_folder(args.out, c.name, m, b) / real_suite.DONE_FILE).is_file()}
         elif args.chunk_seconds is not None:
-            runs = real_suite.run_chunked(jobs, args.chunk_seconds, train)
+            runs = real_suite.run_chunked(jobs, args.chunk_seconds, train, workers=args.jobs)
             outcome = {(c.name, m, b): r for (c, m, b), r in zip(jobs, runs)}
         else:
-            for capture, method, budget in jobs:
+            def attempt(job: tuple[Capture, str, int]) -> Path | str:
+                """The run folder, or the failure's one-line reason (the other runs go on)."""
                 try:
-                    outcome[capture.name, method, budget] = train((capture, method, budget))
+                    return train(job)
                 except real_suite.TrainingFailed as failure:
-                    print(f"error: {capture.name}/{method}/{budget}: {failure}", file=sys.stderr)
-                    outcome[capture.name, method, budget] = str(failure)
-                print(f"done: {capture.name}/{method}/{budget}", flush=True)
+                    print(f"error: {job[0].name}/{job[1]}/{job[2]}: {failure}", file=sys.stderr)
+                    return str(failure)
+                finally:
+                    print(f"done: {job[0].name}/{job[1]}/{job[2]}", flush=True)
+
+            with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+                runs = list(pool.map(attempt, jobs))
+            outcome = {(c.name, m, b): r for (c, m, b), r in zip(jobs, runs)}
     except real_suite.ChunkPending as pending:
         print(f"pending: {pending}", file=sys.stderr)
         return 3
@@ -247,6 +262,11 @@ def main(argv: list[str] | None = None) -> int:
             row["train_s"] = figures.get("train_s")
             row["command"] = json.loads((result / real_suite.DONE_FILE).read_text())["command"]
             rows.append(row)
+        if args.images is not None:
+            finished = [b for b in budgets if all(isinstance(mine.get((capture.name, m, b)), Path) for m in methods)]
+            if finished:
+                real_suite.side_by_side(capture, {m: mine[capture.name, m, finished[-1]] for m in methods},
+                                        masks, args.images)
     text = table(rows)
     print(text)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -21,7 +21,7 @@ redone, and a folder trained with another command stops the suite (use a fresh `
 changing the schedule or the code you want to measure).
 
 `--chunk-seconds S` (machines that allow short calls only; `benchmarks/gpu_real_suite.sh`): the
-runs go one at a time; after about S seconds of the call the run in training is stopped with
+runs go `--jobs` at a time; after about S seconds of the call the run in training is stopped with
 SIGTERM (train.py checkpoints the iteration it is at and exits 143), the command exits 3, and the
 next call continues that run from its latest `chkpnt_*.pth` (`--start_checkpoint`, same command,
 same code version: `real_chunks.json` records them with each call's seconds, whose sum is the
@@ -51,6 +51,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -408,24 +409,46 @@ def canonical_table(rows: dict[str, dict[str, dict]]) -> str:
 
 
 def run_chunked(jobs: list, seconds: float, train: Callable[[object, float], Path],
-                min_start: float = 60.0) -> list[Path | str]:
-    """Advance `jobs` in order within one call of about `seconds`: done runs are skipped, the first
-    unfinished one continues; raises ChunkPending when the time is spent before all are done.
-    `train(job, seconds_left)` is run_one with chunk_seconds (it raises ChunkPending itself). No run
-    is started or continued with less than `min_start` seconds left (a start-up, e.g. ReFlow's
-    canonical space, runs before the first iteration and cannot be cut); a done run costs nothing."""
+                min_start: float = 60.0, workers: int = 1) -> list[Path | str]:
+    """Advance `jobs` in order within one call of about `seconds`, `workers` runs at a time: done
+    runs are skipped, unfinished ones continue; raises ChunkPending when the time is spent before
+    all are done. `train(job, seconds_left)` is run_one with chunk_seconds (it raises ChunkPending
+    itself). No run is started or continued with less than `min_start` seconds left (a start-up,
+    e.g. ReFlow's canonical space, runs before the first iteration and cannot be cut); a done run
+    costs nothing. A worker whose run was stopped takes no further job (its time is spent)."""
     deadline = time.monotonic() + seconds
-    runs: list[Path | str] = []
-    for job in jobs:
-        left = deadline - time.monotonic()
-        if left < min(min_start, seconds) or left <= 0:
-            raise ChunkPending(f"{len(jobs) - len(runs)} run(s) left after {seconds:.0f} s; call again to continue")
-        try:
-            runs.append(train(job, left))
-        except TrainingFailed as failure:
-            print(f"error: {failure}", file=sys.stderr)
-            runs.append(str(failure))
-    return runs
+    results: dict[int, Path | str] = {}
+    pending: list[str] = []
+    queue = list(enumerate(jobs))[::-1]  # popped from the end: in order
+    guard = threading.Lock()
+
+    def worker() -> None:
+        while True:
+            with guard:
+                left = deadline - time.monotonic()
+                if not queue or left < min(min_start, seconds) or left <= 0:
+                    return
+                index, job = queue.pop()
+            try:
+                results[index] = train(job, left)
+            except TrainingFailed as failure:
+                print(f"error: {failure}", file=sys.stderr)
+                results[index] = str(failure)
+            except ChunkPending as stopped:
+                with guard:
+                    pending.append(str(stopped))
+                return
+
+    threads = [threading.Thread(target=worker) for _ in range(max(1, workers))]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    if len(results) < len(jobs):
+        left_over = len(jobs) - len(results)
+        raise ChunkPending(pending[0] if pending else
+                           f"{left_over} run(s) left after {seconds:.0f} s; call again to continue")
+    return [results[i] for i in range(len(jobs))]
 
 
 def parse_resolutions(text: str | None, captures: list[Capture]) -> dict[str, int]:
@@ -457,7 +480,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--resolution", help="NAME=R,...: train.py -r per capture (default: the registry's)")
     parser.add_argument("--chunk-seconds", type=float, metavar="S",
                         help="train at most about S seconds in this call, then checkpoint and exit 3; the next "
-                             "call continues (for machines that allow short calls only; --jobs 1)")
+                             "call continues (for machines that allow short calls only; --jobs runs at once)")
     parser.add_argument("--fetch-instructions", action="store_true", help="print how to fetch each capture, then exit")
     parser.add_argument("--setup", metavar="NAME", help="extract (and prepare) capture NAME from --clone, then exit")
     parser.add_argument("--clone", type=Path, help="a clone (plain or bare) of the capture's repository")
@@ -504,7 +527,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.chunk_seconds is not None:
             runs = run_chunked(jobs, args.chunk_seconds, lambda job, seconds: run_one(
-                job[0], job[1], args.data, args.out, schedule, extra, threads, chunk_seconds=seconds))
+                job[0], job[1], args.data, args.out, schedule, extra, threads, chunk_seconds=seconds),
+                workers=args.jobs)
         else:
             with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
                 runs = list(pool.map(attempt, jobs))

@@ -132,7 +132,7 @@ def test_plot_has_one_panel_per_capture(tmp_path):
 
 def test_bad_budgets_and_resolutions_are_one_line_errors(tmp_path, capsys):
     for argv in (["--budgets", "1k"], ["--budgets", "0,100"], ["--resolution", "nope=2"],
-                 ["--resolution", "nvidia_balloon1=x"]):
+                 ["--resolution", "nvidia_balloon1=x"], ["--jobs", "0"]):
         assert convergence.main([*argv, "--data", str(tmp_path), "--out", str(tmp_path / "out")]) == 2
         err = capsys.readouterr().err
         assert err.startswith("error: ") and err.count("\n") == 1, err

@@ -284,6 +284,28 @@ def test_run_chunked_skips_done_runs_and_stops_when_the_call_s_time_is_spent():
     assert real_suite.run_chunked(["a", "c"], 100.0, train) == [Path("a"), Path("c")]
 
 
+def test_run_chunked_with_workers_trains_runs_at_once_and_reports_a_stopped_one():
+    """workers=2: two runs train at the same time (each waits for the other at a barrier, which a
+    one-at-a-time loop would never reach); a stopped run makes the call pending, the others finish."""
+    import threading
+    met = threading.Barrier(2, timeout=10)
+
+    def train(job, left):
+        if job in ("a", "b"):
+            met.wait()
+        if job == "b":
+            raise real_suite.ChunkPending("b: call again")
+        return Path(job)
+
+    finished = []
+    with pytest.raises(real_suite.ChunkPending, match="b: call again"):
+        real_suite.run_chunked(["a", "b", "c"], 100.0, lambda job, left: finished.append(job) or train(job, left),
+                               workers=2)
+    assert sorted(finished) == ["a", "b", "c"]  # a's worker went on to c
+    assert real_suite.run_chunked(["a", "c", "d"], 100.0, lambda job, left: Path(job), workers=3) == [
+        Path("a"), Path("c"), Path("d")]                                   # in the jobs' order
+
+
 def test_a_chunked_run_is_continued_only_with_its_own_command_and_code(tmp_path, monkeypatch):
     capture = CAPTURES["nvidia_balloon1"]
     schedule = {"coarse_iterations": 3, "iterations": 5, "seed": 0}
