@@ -147,13 +147,19 @@ class SeparatedDeformation(DeformNetwork):
         if deformed.numel() == n and not relative:
             out = super().forward(out, field_times)
         elif deformed.numel() > 0:  # none alive at t (every copy culled): nothing to deform
-            rows = out.index(deformed)
+            # the fields the network passes through (SH, opacity) are not gathered: stand-ins
+            passed = super().passed_through()
+            rows = out.index(deformed, stand_ins=passed)
             if relative and self.anchored:
                 row_gaussian = (buffers or {}).get("row_gaussian")
                 moved = self._anchored_forward(rows, field_times[deformed],
                                                None if row_gaussian is None else row_gaussian[deformed])
             else:
                 moved = super().forward(rows, field_times[deformed])
+            for name in passed:
+                if getattr(moved, name) is not getattr(rows, name):
+                    raise RuntimeError(f"SeparatedDeformation: the network changed {name}, which its "
+                                       "passed_through() says it returns untouched")
             # A field the network passed through (4DGS's disabled heads: SH, opacity) keeps `out`'s
             # tensor: no copy forward, no scatter of a [N, 16, 3] gradient backward (same values).
             out = GaussianState(*(
@@ -192,7 +198,7 @@ class SeparatedDeformation(DeformNetwork):
             zero_rows = torch.full((distinct.numel(),), m, device=taus.device).scatter_reduce(
                 0, back, rows, reduce="amin")
         u = zero_rows.numel()
-        doubled = state.index(torch.cat((rows, zero_rows)))
+        doubled = state.index(torch.cat((rows, zero_rows)), stand_ins=super().passed_through())
         both = super().forward(doubled, torch.cat((taus, taus.new_zeros(u, 1))))
 
         def moved(name: str) -> Tensor:
@@ -205,6 +211,15 @@ class SeparatedDeformation(DeformNetwork):
             return getattr(state, name) + (value[:m] - zero)
 
         return GaussianState(*(moved(name) for name in STATE_FIELDS))
+
+    def passed_through(self) -> frozenset[str]:
+        """Fields `forward` returns untouched whatever the input (GaussianModel.deform_many repeats
+        only the others): the network's, less the opacity (temporal windows scale it) and the
+        fields the static decoder moves."""
+        changed = {"opacity_logits"}
+        if self.static_decoder is not None:
+            changed |= {"means", "log_scales", "rotations"}
+        return super().passed_through() - changed
 
     def _decode_static(self, state: GaussianState, rows: Tensor) -> GaussianState:
         deltas = self.static_decoder(state.means[rows])
