@@ -13,8 +13,8 @@ a trainer draw the same cameras and partner frames (its samplers' states are res
 block): the rows a ReFlow step deforms and the pixels its flow terms mask depend on the frames, so
 blocks of different frames differ by more than most changes. The switch is read at each call
 (set to 0 for "off", removed for "on", the default). Prints the median ms per iteration of each
-variant, the ReFlow / baseline ratio with the switch off and on, and on / off per trainer; asserts
-nothing. A switch the baseline never reads gives it two samples of one variant (a noise check).
+variant (wall time and the process's CPU time), the ReFlow / baseline ratio with the switch off and
+on, and on / off per trainer; asserts nothing. A switch the baseline never reads gives it two samples of one variant (a noise check).
 """
 from __future__ import annotations
 
@@ -46,12 +46,14 @@ def _samplers(trainer) -> list:
     return found
 
 
-def interleaved(trainers: dict, switch: str, iters: int, rounds: int) -> dict[tuple[str, str], float]:
-    """Median ms per iteration of each (trainer label, setting), blocks of `iters`, order alternating by round."""
+def interleaved(trainers: dict, switch: str, iters: int, rounds: int) -> tuple[dict, dict]:
+    """Median wall ms and median process CPU ms per iteration of each (trainer label, setting),
+    blocks of `iters`, order alternating by round."""
     from benchmarks.profile_step import _step
 
     variants = [(label, setting) for label in trainers for setting in SETTINGS]
     times: dict[tuple[str, str], list[float]] = {v: [] for v in variants}
+    cpu_times: dict[tuple[str, str], list[float]] = {v: [] for v in variants}
     saved = os.environ.get(switch)
     try:
         for r in range(rounds):
@@ -66,15 +68,17 @@ def interleaved(trainers: dict, switch: str, iters: int, rounds: int) -> dict[tu
                 trainer = trainers[label]
                 _step(trainer, 1)  # the first iteration after a switch is not timed
                 for _ in range(iters):
-                    start = time.perf_counter()
+                    start, cpu = time.perf_counter(), time.process_time()
                     _step(trainer, 1)
                     times[(label, setting)].append((time.perf_counter() - start) * 1e3)
+                    cpu_times[(label, setting)].append((time.process_time() - cpu) * 1e3)
     finally:
         if saved is None:
             os.environ.pop(switch, None)
         else:
             os.environ[switch] = saved
-    return {v: statistics.median(t) for v, t in times.items()}
+    return ({v: statistics.median(t) for v, t in times.items()},
+            {v: statistics.median(t) for v, t in cpu_times.items()})
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -101,16 +105,20 @@ def main(argv: list[str] | None = None) -> int:
     trainers = {"plugin": plugin, "baseline": _prepare(baseline_argv(train_argv), None, 0, count)}
     for trainer in trainers.values():
         _step(trainer, 3)  # allocator and caches warm
-    medians = interleaved(trainers, args.switch, args.iters, args.rounds)
+    wall, cpu = interleaved(trainers, args.switch, args.iters, args.rounds)
     size = f"{plugin.train_cameras[0].width}x{plugin.train_cameras[0].height}"
-    print(f"\n{count} Gaussians, {size}, blocks of {args.iters} x {args.rounds} rounds\n")
-    print("| switch | plugin ms | baseline ms | plugin / baseline |\n|---|---:|---:|---:|")
+    print(f"\n{count} Gaussians, {size}, blocks of {args.iters} x {args.rounds} rounds; CPU: the process's "
+          "CPU time (steadier than wall time on a shared machine when the step runs one thread)\n")
+    print("| switch | plugin ms | baseline ms | plugin / baseline | plugin CPU ms | baseline CPU ms | CPU ratio |\n"
+          "|---|---:|---:|---:|---:|---:|---:|")
     for setting in SETTINGS:
-        a, b = medians[("plugin", setting)], medians[("baseline", setting)]
-        print(f"| {setting} | {a:.1f} | {b:.1f} | {a / b:.2f}x |")
-    print("\n| trainer | on / off |\n|---|---:|")
+        a, b = wall[("plugin", setting)], wall[("baseline", setting)]
+        ca, cb = cpu[("plugin", setting)], cpu[("baseline", setting)]
+        print(f"| {setting} | {a:.1f} | {b:.1f} | {a / b:.2f}x | {ca:.1f} | {cb:.1f} | {ca / cb:.2f}x |")
+    print("\n| trainer | on / off (wall) | on / off (CPU) |\n|---|---:|---:|")
     for label in trainers:
-        print(f"| {label} | {medians[(label, 'on')] / medians[(label, 'off')]:.3f}x |")
+        print(f"| {label} | {wall[(label, 'on')] / wall[(label, 'off')]:.3f}x | "
+              f"{cpu[(label, 'on')] / cpu[(label, 'off')]:.3f}x |")
     print(f"# load at the end {load_average()}")
     return 0
 
