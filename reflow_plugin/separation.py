@@ -144,6 +144,9 @@ class SeparatedDeformation(DeformNetwork):
         deformed = dynamic
         if self.window_cull > 0 and centers is not None and log_scales is not None:
             deformed = self._inside_windows(dynamic, times, centers, log_scales)
+        used = (buffers or {}).get("row_used")
+        if used is not None:  # rows the caller does not read stay canonical (GaussianModel.deform_many)
+            deformed = deformed[used[deformed]]
         if deformed.numel() == n and not relative:
             out = super().forward(out, field_times)
         elif deformed.numel() > 0:  # none alive at t (every copy culled): nothing to deform
@@ -171,6 +174,22 @@ class SeparatedDeformation(DeformNetwork):
                                      centers[dynamic], log_scales[dynamic])
             out = out.replace(opacity_logits=out.opacity_logits.index_copy(0, dynamic, logits))
         return out
+
+    def alive_at(self, time: float, buffers: Mapping[str, Tensor]) -> Tensor | None:
+        """[N] bool: every static Gaussian and the dynamic ones `forward` deforms at `time`, i.e. all
+        but those whose temporal window culls them there; None without windows (all alive).
+
+        A culled Gaussian's opacity at `time` is below window_cull (1e-3 < 1/255, the rasterizer's
+        alpha cutoff), so no view at that time shows it: ReFlow's partner frames need not deform it.
+        """
+        table = buffers.get("deformation_table")
+        centers, log_scales = buffers.get(TIME_CENTER), buffers.get(TIME_LOG_SCALE)
+        if self.window_cull <= 0 or table is None or centers is None or log_scales is None:
+            return None
+        times = torch.full((table.shape[0], 1), float(time), dtype=centers.dtype, device=centers.device)
+        alive = ~table
+        alive[self._inside_windows(table.nonzero().squeeze(1), times, centers, log_scales)] = True
+        return alive
 
     def _inside_windows(self, dynamic: Tensor, times: Tensor, centers: Tensor, log_scales: Tensor) -> Tensor:
         """The rows of `dynamic` whose temporal window weight at their time is >= window_cull."""

@@ -90,7 +90,8 @@ class DeformationModule(Protocol):
     (``GaussianModel.deformation_inputs``). 4DGS's network deforms every row. Rows must be deformed
     independently of each other: ``GaussianModel.deform_many`` stacks the state once per time and
     makes one call (adding ``buffers["row_gaussian"]``, [kN] long: the Gaussian each row is, for
-    a term a module computes once per Gaussian). Optimizer groups "deformation" and "grid" are built from
+    a term a module computes once per Gaussian; and, when its caller says which rows it reads,
+    ``buffers["row_used"]``, [kN] bool: a module may return the other rows undeformed). Optimizer groups "deformation" and "grid" are built from
     ``get_mlp_parameters()`` and ``get_grid_parameters()``. Optional: ``passed_through()`` ->
     the state fields the module returns as its input's own tensors without reading them, for any
     input (4DGS's network: the fields of its disabled heads); ``deform_many`` then repeats only

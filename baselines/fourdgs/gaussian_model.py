@@ -552,7 +552,8 @@ class GaussianModel:
             out = out.replace(means=2.0 * out.means - before)
         return out
 
-    def deform_many(self, times: Sequence[float], stage: str) -> list[GaussianState]:
+    def deform_many(self, times: Sequence[float], stage: str,
+                    rows: Sequence[Tensor | None] | None = None) -> list[GaussianState]:
         """The Gaussians at each of `times` (scalars), equal to ``[deform(t, stage) for t in times]``.
 
         Several times inside the training span go through the deformation module in ONE call on
@@ -560,7 +561,13 @@ class GaussianModel:
         a HexPlane field and its MLP (hundreds of small kernels on a GPU) is paid once for a
         view and its partner frame. A time outside the span (its clamping and extrapolation) or a
         single time takes ``deform``'s path.
+
+        `rows[k]` ([N] bool, or None for all): the Gaussians whose state at times[k] the caller
+        reads. The module gets them as ``buffers["row_used"]`` ([kN] bool) and may leave the other
+        rows undeformed (equal to the canonical state); on ``deform``'s path every row is deformed.
         """
+        if rows is not None and len(rows) != len(times):
+            raise ValueError(f"deform_many: {len(rows)} row masks for {len(times)} times")
         times = [float(t) for t in times]
         span = self.time_span
         outside = span is not None and self.time_outside != "extrapolate" and not all(
@@ -577,6 +584,12 @@ class GaussianModel:
         inputs = {name: torch.cat([value] * len(times)) for name, value in self.deformation_inputs().items()}
         # which Gaussian each repeated row is: a module may compute a time-independent term once per Gaussian
         inputs["row_gaussian"] = torch.arange(count, device=self.device).repeat(len(times))
+        if rows is not None and any(r is not None for r in rows):
+            for r in rows:
+                if r is not None and (r.dtype != torch.bool or tuple(r.shape) != (count,)):
+                    raise ValueError(f"deform_many: a row mask must be [{count}] bool, got {r.dtype} {list(r.shape)}")
+            inputs["row_used"] = torch.cat([torch.ones(count, dtype=torch.bool, device=self.device) if r is None
+                                            else r.to(self.device) for r in rows])
         out = self._deformation(repeated, column, inputs)
         for name in passed:
             if getattr(out, name) is not getattr(repeated, name):
