@@ -46,9 +46,10 @@ def _samplers(trainer) -> list:
     return found
 
 
-def interleaved(trainers: dict, switch: str, iters: int, rounds: int) -> tuple[dict, dict]:
+def interleaved(trainers: dict, switch: str, iters: int, rounds: int) -> tuple[dict, dict, dict]:
     """Median wall ms and median process CPU ms per iteration of each (trainer label, setting),
-    blocks of `iters`, order alternating by round."""
+    blocks of `iters`, order alternating by round; and per trainer the median over rounds of the
+    round's on / off CPU time (the two blocks of a round ran the same frames, close in time)."""
     from benchmarks.profile_step import _step
 
     variants = [(label, setting) for label in trainers for setting in SETTINGS]
@@ -77,8 +78,11 @@ def interleaved(trainers: dict, switch: str, iters: int, rounds: int) -> tuple[d
             os.environ.pop(switch, None)
         else:
             os.environ[switch] = saved
+    paired = {label: statistics.median(
+        sum(cpu_times[(label, "on")][r * iters:(r + 1) * iters]) / sum(cpu_times[(label, "off")][r * iters:(r + 1) * iters])
+        for r in range(rounds)) for label in trainers}
     return ({v: statistics.median(t) for v, t in times.items()},
-            {v: statistics.median(t) for v, t in cpu_times.items()})
+            {v: statistics.median(t) for v, t in cpu_times.items()}, paired)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -105,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     trainers = {"plugin": plugin, "baseline": _prepare(baseline_argv(train_argv), None, 0, count)}
     for trainer in trainers.values():
         _step(trainer, 3)  # allocator and caches warm
-    wall, cpu = interleaved(trainers, args.switch, args.iters, args.rounds)
+    wall, cpu, paired = interleaved(trainers, args.switch, args.iters, args.rounds)
     size = f"{plugin.train_cameras[0].width}x{plugin.train_cameras[0].height}"
     print(f"\n{count} Gaussians, {size}, blocks of {args.iters} x {args.rounds} rounds; CPU: the process's "
           "CPU time (steadier than wall time on a shared machine when the step runs one thread)\n")
@@ -115,10 +119,11 @@ def main(argv: list[str] | None = None) -> int:
         a, b = wall[("plugin", setting)], wall[("baseline", setting)]
         ca, cb = cpu[("plugin", setting)], cpu[("baseline", setting)]
         print(f"| {setting} | {a:.1f} | {b:.1f} | {a / b:.2f}x | {ca:.1f} | {cb:.1f} | {ca / cb:.2f}x |")
-    print("\n| trainer | on / off (wall) | on / off (CPU) |\n|---|---:|---:|")
+    print("\n| trainer | on / off (wall) | on / off (CPU) | on / off (CPU, median of the rounds' pairs) |\n"
+          "|---|---:|---:|---:|")
     for label in trainers:
         print(f"| {label} | {wall[(label, 'on')] / wall[(label, 'off')]:.3f}x | "
-              f"{cpu[(label, 'on')] / cpu[(label, 'off')]:.3f}x |")
+              f"{cpu[(label, 'on')] / cpu[(label, 'off')]:.3f}x | {paired[label]:.3f}x |")
     print(f"# load at the end {load_average()}")
     return 0
 
