@@ -50,6 +50,7 @@ from baselines.fourdgs.state import STATE_FIELDS, GaussianState
 SPATIAL_PLANE_INDICES = tuple(i for i, axes in enumerate(PLANE_AXES) if 3 not in axes)  # xy, xz, yz
 TIME_CENTER = "reflow_time_center"  # [N, 1] buffer: the time a dynamic Gaussian was seeded at
 TIME_LOG_SCALE = "reflow_time_log_scale"  # [N, 1] parameter: log of its temporal standard deviation
+ALPHA_CUTOFF = 1.0 / 255.0  # the rasterizer skips a Gaussian at a pixel below this alpha
 
 
 def temporal_window(opacity_logits: Tensor, times: Tensor, centers: Tensor, log_scales: Tensor) -> Tensor:
@@ -179,12 +180,13 @@ class SeparatedDeformation(DeformNetwork):
         """[N] bool: every static Gaussian and the dynamic ones `forward` deforms at `time`, i.e. all
         but those whose temporal window culls them there; None without windows (all alive).
 
-        A culled Gaussian's opacity at `time` is below window_cull (1e-3 < 1/255, the rasterizer's
-        alpha cutoff), so no view at that time shows it: ReFlow's partner frames need not deform it.
+        A culled Gaussian's opacity at `time` is below window_cull (ReFlow's 1e-3 < 1/255, the
+        rasterizer's alpha cutoff), so no view at that time shows it: ReFlow's partner frames need not
+        deform it. With a cull above 1/255 that would not hold, and every row counts as alive (None).
         """
         table = buffers.get("deformation_table")
         centers, log_scales = buffers.get(TIME_CENTER), buffers.get(TIME_LOG_SCALE)
-        if self.window_cull <= 0 or table is None or centers is None or log_scales is None:
+        if not 0 < self.window_cull <= ALPHA_CUTOFF or table is None or centers is None or log_scales is None:
             return None
         times = torch.full((table.shape[0], 1), float(time), dtype=centers.dtype, device=centers.device)
         alive = ~table

@@ -271,3 +271,13 @@ def test_partner_rows_leave_what_the_view_cannot_show_undeformed_with_equal_flow
     wrong = shown.clone()
     wrong[(shown & deformed_at_b & model.deformation_table).nonzero()[:20, 0]] = False
     assert not torch.allclose(flow_and_grads([None, wrong])[0], whole_maps, rtol=1e-12, atol=1e-12)
+
+
+def test_alive_at_claims_nothing_when_the_cull_could_leave_a_gaussian_visible():
+    model = _anchored_carpet_model(anchored=True)
+    model.register_gaussian_buffer(TIME_LOG_SCALE, torch.full((model.num_gaussians, 1), math.log(0.1)))
+    buffers = model.deformation_inputs()
+    model.deformation.window_cull = 1e-3
+    assert model.deformation.alive_at(0.9, buffers) is not None and not model.deformation.alive_at(0.9, buffers).any()
+    model.deformation.window_cull = 0.01  # above 1/255: a culled Gaussian may still be drawn
+    assert model.deformation.alive_at(0.9, buffers) is None
