@@ -54,6 +54,7 @@ from torch import Tensor
 from baselines.data import PointCloud
 from baselines.fourdgs.gaussian_model import GaussianModel
 from baselines.fourdgs.plugins import Plugin
+from baselines.native_build import switched_off_by_env
 
 from .canonical_construction import CanonicalConstruction, _metric_points, canonical_available
 from .evaluate import flow_metrics, summary_line, write_flow_metrics
@@ -72,6 +73,7 @@ from .visualize import write_panel
 
 log = logging.getLogger("reflow")
 RUN_FOLDER = "reflow"
+PARTNER_ROWS_SWITCH = "REFLOW4DGS_PARTNER_ROWS"  # 0/false/off/no: partners deformed whole (partner_rows)
 
 
 class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugin):
@@ -234,9 +236,10 @@ class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugi
         (SeparatedDeformation.alive_at). A partner's projection is read only through that view's flow
         channels, and a Gaussian the view cannot show never reaches its pixels, so its state at the
         partner's time changes neither values nor gradients: it stays undeformed (about 25% of the
-        partner rows on NVIDIA Balloon1 `-r 4`, whose keyframe copies live in short temporal windows)."""
+        partner rows on NVIDIA Balloon1 `-r 4`, whose keyframe copies live in short temporal windows).
+        `REFLOW4DGS_PARTNER_ROWS=0` deforms them whole (for A/B measurements)."""
         alive_at = getattr(ctx.model.deformation, "alive_at", None)
-        if not self._partners_projected or alive_at is None:
+        if not self._partners_projected or alive_at is None or switched_off_by_env("", PARTNER_ROWS_SWITCH):
             return None
         buffers = ctx.model.deformation_inputs()
         views = [view for view, partner in zip(ctx.batch, self._partner_cameras) if partner is not None]

@@ -281,3 +281,28 @@ def test_alive_at_claims_nothing_when_the_cull_could_leave_a_gaussian_visible():
     assert model.deformation.alive_at(0.9, buffers) is not None and not model.deformation.alive_at(0.9, buffers).any()
     model.deformation.window_cull = 0.01  # above 1/255: a culled Gaussian may still be drawn
     assert model.deformation.alive_at(0.9, buffers) is None
+
+
+def test_partner_rows_follow_the_view_of_each_partner_and_the_switch(monkeypatch):
+    """ReFlowPlugin.partner_rows: one mask per projected partner, the Gaussians alive at the time of
+    the batch view that partner belongs to; REFLOW4DGS_PARTNER_ROWS=0 asks for whole partners."""
+    from types import SimpleNamespace
+
+    from reflow_plugin.plugin import PARTNER_ROWS_SWITCH, ReFlowPlugin
+
+    model = _anchored_carpet_model(anchored=True)
+    model.deformation.window_cull = 1e-3
+    n = model.num_gaussians
+    model.pop_gaussian_buffer(TIME_CENTER)
+    model.register_gaussian_buffer(TIME_CENTER, torch.tensor([-0.5, 0.5]).repeat(n // 2 + 1)[:n].unsqueeze(1))
+    model.register_gaussian_buffer(TIME_LOG_SCALE, torch.full((n, 1), math.log(0.1)))
+    plugin = ReFlowPlugin()
+    views = [SimpleNamespace(time=-0.5), SimpleNamespace(time=0.1), SimpleNamespace(time=0.5)]
+    plugin._partner_cameras = [SimpleNamespace(time=0.0), None, SimpleNamespace(time=0.0)]  # nothing alive at 0
+    plugin._partners_projected = True
+    ctx = SimpleNamespace(model=model, batch=views)
+    early, late = plugin.partner_rows(ctx)  # the views at -0.5 and 0.5 (the one at 0.1 has no partner)
+    centres = model.deformation_inputs()[TIME_CENTER][:, 0]
+    assert torch.equal(early, centres == -0.5) and torch.equal(late, centres == 0.5)
+    monkeypatch.setenv(PARTNER_ROWS_SWITCH, "0")
+    assert plugin.partner_rows(ctx) is None
