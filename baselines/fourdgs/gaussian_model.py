@@ -36,7 +36,7 @@ from torch import Tensor, nn
 from baselines.fourdgs.deformation import DeformNetwork, check_deformation_state
 from baselines.fourdgs.lr_schedule import get_expon_lr_func
 from baselines.fourdgs.optimizer_state import check_state_by_group_name, load_state_by_group_name, swap_group_param
-from baselines.fourdgs.state import STATE_FIELDS, GaussianState, stand_in
+from baselines.fourdgs.state import STATE_FIELDS, GaussianState, activate_log_scales, stand_in
 
 SH_C0 = 0.28209479177387814
 TIME_OUTSIDE_MODES = ("extrapolate", "hold", "linear")  # see GaussianModel.set_time_span
@@ -162,7 +162,7 @@ class GaussianModel:
 
     @property
     def get_scaling(self) -> Tensor:
-        return torch.exp(self._scaling)
+        return activate_log_scales(self._scaling)
 
     @property
     def get_rotation(self) -> Tensor:

@@ -18,6 +18,18 @@ from torch import Tensor
 
 STATE_FIELDS = ("means", "log_scales", "rotations", "opacity_logits", "shs")  # GaussianState's field order
 _FIELDS = STATE_FIELDS
+# Largest log-scale the activation passes on (ours; 4DGS has no bound). A deformation network that
+# runs away for one Gaussian can add +40..+100 to its log-scale (seen on DAVIS motocross-jump:
+# +97 at one time, exp() = inf in float32, and the run died at fine iteration 715). exp(20) = 4.9e8
+# scene units is larger than any real Gaussian yet keeps s^2 and the projected covariances finite;
+# a clamped axis gets no gradient, its Gaussian's opacity and colour still do.
+MAX_LOG_SCALE = 20.0
+
+
+def activate_log_scales(log_scales: Tensor) -> Tensor:
+    """[..., 3] log-scales -> standard deviations exp(min(log_scale, MAX_LOG_SCALE)), always finite
+    for finite input."""
+    return torch.exp(log_scales.clamp(max=MAX_LOG_SCALE))
 
 
 def stand_in(like: Tensor, rows: int) -> Tensor:
@@ -50,8 +62,8 @@ class GaussianState:
     # Activated views (what the rasterizer consumes).
     @property
     def scales(self) -> Tensor:
-        """[N, 3] standard deviations (exp of the stored log-scales)."""
-        return torch.exp(self.log_scales)
+        """[N, 3] standard deviations (exp of the stored log-scales, capped: `activate_log_scales`)."""
+        return activate_log_scales(self.log_scales)
 
     @property
     def quats(self) -> Tensor:
