@@ -54,6 +54,7 @@ from torch import Tensor
 from baselines.data import PointCloud
 from baselines.fourdgs.gaussian_model import GaussianModel
 from baselines.fourdgs.plugins import Plugin
+from baselines.native_build import switched_off_by_env
 
 from .canonical_construction import CanonicalConstruction, _metric_points, canonical_available
 from .evaluate import flow_metrics, summary_line, write_flow_metrics
@@ -72,6 +73,7 @@ from .visualize import write_panel
 
 log = logging.getLogger("reflow")
 RUN_FOLDER = "reflow"
+PARTNER_ROWS_SWITCH = "REFLOW4DGS_PARTNER_ROWS"  # 0/false/off/no: partners deformed whole (partner_rows)
 
 
 class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugin):
@@ -228,6 +230,20 @@ class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugi
         chosen = [c for c in self._partner_cameras if c is not None]
         self._partners_projected = bool(chosen) and self._full_now(ctx)
         return chosen if self._partners_projected else None
+
+    def partner_rows(self, ctx) -> list[Tensor | None] | None:
+        """Per projected partner: the Gaussians its batch view can show at the view's time
+        (SeparatedDeformation.alive_at). A partner's projection is read only through that view's flow
+        channels, and a Gaussian the view cannot show never reaches its pixels, so its state at the
+        partner's time changes neither values nor gradients: it stays undeformed (about 25% of the
+        partner rows on NVIDIA Balloon1 `-r 4`, whose keyframe copies live in short temporal windows).
+        `REFLOW4DGS_PARTNER_ROWS=0` deforms them whole (for A/B measurements)."""
+        alive_at = getattr(ctx.model.deformation, "alive_at", None)
+        if not self._partners_projected or alive_at is None or switched_off_by_env("", PARTNER_ROWS_SWITCH):
+            return None
+        buffers = ctx.model.deformation_inputs()
+        views = [view for view, partner in zip(ctx.batch, self._partner_cameras) if partner is not None]
+        return [alive_at(view.time, buffers) for view in views]
 
     def extra_features(self, ctx, view_index: int) -> dict[str, Tensor] | None:
         targets = self._targets(ctx)

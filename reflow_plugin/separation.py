@@ -50,6 +50,7 @@ from baselines.fourdgs.state import STATE_FIELDS, GaussianState
 SPATIAL_PLANE_INDICES = tuple(i for i, axes in enumerate(PLANE_AXES) if 3 not in axes)  # xy, xz, yz
 TIME_CENTER = "reflow_time_center"  # [N, 1] buffer: the time a dynamic Gaussian was seeded at
 TIME_LOG_SCALE = "reflow_time_log_scale"  # [N, 1] parameter: log of its temporal standard deviation
+ALPHA_CUTOFF = 1.0 / 255.0  # the rasterizer skips a Gaussian at a pixel below this alpha
 
 
 def temporal_window(opacity_logits: Tensor, times: Tensor, centers: Tensor, log_scales: Tensor) -> Tensor:
@@ -144,16 +145,25 @@ class SeparatedDeformation(DeformNetwork):
         deformed = dynamic
         if self.window_cull > 0 and centers is not None and log_scales is not None:
             deformed = self._inside_windows(dynamic, times, centers, log_scales)
+        used = (buffers or {}).get("row_used")
+        if used is not None:  # rows the caller does not read stay canonical (GaussianModel.deform_many)
+            deformed = deformed[used[deformed]]
         if deformed.numel() == n and not relative:
             out = super().forward(out, field_times)
         elif deformed.numel() > 0:  # none alive at t (every copy culled): nothing to deform
-            rows = out.index(deformed)
+            # the fields the network passes through (SH, opacity) are not gathered: stand-ins
+            passed = super().passed_through()
+            rows = out.index(deformed, stand_ins=passed)
             if relative and self.anchored:
                 row_gaussian = (buffers or {}).get("row_gaussian")
                 moved = self._anchored_forward(rows, field_times[deformed],
                                                None if row_gaussian is None else row_gaussian[deformed])
             else:
                 moved = super().forward(rows, field_times[deformed])
+            for name in passed:
+                if getattr(moved, name) is not getattr(rows, name):
+                    raise RuntimeError(f"SeparatedDeformation: the network changed {name}, which its "
+                                       "passed_through() says it returns untouched")
             # A field the network passed through (4DGS's disabled heads: SH, opacity) keeps `out`'s
             # tensor: no copy forward, no scatter of a [N, 16, 3] gradient backward (same values).
             out = GaussianState(*(
@@ -165,6 +175,23 @@ class SeparatedDeformation(DeformNetwork):
                                      centers[dynamic], log_scales[dynamic])
             out = out.replace(opacity_logits=out.opacity_logits.index_copy(0, dynamic, logits))
         return out
+
+    def alive_at(self, time: float, buffers: Mapping[str, Tensor]) -> Tensor | None:
+        """[N] bool: every static Gaussian and the dynamic ones `forward` deforms at `time`, i.e. all
+        but those whose temporal window culls them there; None without windows (all alive).
+
+        A culled Gaussian's opacity at `time` is below window_cull (ReFlow's 1e-3 < 1/255, the
+        rasterizer's alpha cutoff), so no view at that time shows it: ReFlow's partner frames need not
+        deform it. With a cull above 1/255 that would not hold, and every row counts as alive (None).
+        """
+        table = buffers.get("deformation_table")
+        centers, log_scales = buffers.get(TIME_CENTER), buffers.get(TIME_LOG_SCALE)
+        if not 0 < self.window_cull <= ALPHA_CUTOFF or table is None or centers is None or log_scales is None:
+            return None
+        times = torch.full((table.shape[0], 1), float(time), dtype=centers.dtype, device=centers.device)
+        alive = ~table
+        alive[self._inside_windows(table.nonzero().squeeze(1), times, centers, log_scales)] = True
+        return alive
 
     def _inside_windows(self, dynamic: Tensor, times: Tensor, centers: Tensor, log_scales: Tensor) -> Tensor:
         """The rows of `dynamic` whose temporal window weight at their time is >= window_cull."""
@@ -192,7 +219,7 @@ class SeparatedDeformation(DeformNetwork):
             zero_rows = torch.full((distinct.numel(),), m, device=taus.device).scatter_reduce(
                 0, back, rows, reduce="amin")
         u = zero_rows.numel()
-        doubled = state.index(torch.cat((rows, zero_rows)))
+        doubled = state.index(torch.cat((rows, zero_rows)), stand_ins=super().passed_through())
         both = super().forward(doubled, torch.cat((taus, taus.new_zeros(u, 1))))
 
         def moved(name: str) -> Tensor:
@@ -205,6 +232,15 @@ class SeparatedDeformation(DeformNetwork):
             return getattr(state, name) + (value[:m] - zero)
 
         return GaussianState(*(moved(name) for name in STATE_FIELDS))
+
+    def passed_through(self) -> frozenset[str]:
+        """Fields `forward` returns untouched whatever the input (GaussianModel.deform_many repeats
+        only the others): the network's, less the opacity (temporal windows scale it) and the
+        fields the static decoder moves."""
+        changed = {"opacity_logits"}
+        if self.static_decoder is not None:
+            changed |= {"means", "log_scales", "rotations"}
+        return super().passed_through() - changed
 
     def _decode_static(self, state: GaussianState, rows: Tensor) -> GaussianState:
         deltas = self.static_decoder(state.means[rows])

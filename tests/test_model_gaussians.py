@@ -338,3 +338,38 @@ def test_restore_rejects_foreign_optimizer_state_before_changing_the_model():
     with pytest.raises(ValueError, match="exp_avg.*group 'xyz'"):
         target.restore(tuple(captured[:12] + [wrong_shape] + captured[13:]), opt_args(), source="chk.pth")
     assert target.num_gaussians == 7 and target.optimizer is not None
+
+
+def test_deform_many_repeats_only_the_fields_the_module_reads(monkeypatch):
+    """The fields the module passes through unread (passed_through(): 4DGS's disabled heads) reach
+    it as zero-stride stand-ins, not as k copies of the [N, K, 3] SH; a module that changes such a
+    field anyway is named instead of rendering the stand-in."""
+    model = model_with_time_dependent_planes()
+    module = type(model.deformation)
+    assert model.deformation.passed_through() == {"opacity_logits", "shs"}
+    seen = {}
+    real = module.forward
+
+    def spy(self, state, times, buffers=None):
+        seen["state"] = state
+        return real(self, state, times, buffers)
+
+    monkeypatch.setattr(module, "forward", spy)
+    model.deform_many((0.2, 0.9, 0.4), "fine")
+    given, n = seen["state"], model.num_gaussians
+    assert given.shs.shape == (3 * n, *model.canonical_state().shs.shape[1:])
+    assert given.shs.stride() == (0, 0, 0) and given.opacity_logits.stride() == (0, 0)
+    assert given.means.stride(0) == 3 and given.means.shape == (3 * n, 3)
+
+    monkeypatch.setattr(module, "forward", lambda self, state, times, buffers=None:
+                        real(self, state, times, buffers).replace(shs=state.shs + 0.0))
+    with pytest.raises(RuntimeError, match="changed shs"):
+        model.deform_many((0.2, 0.9), "fine")
+
+
+def test_passed_through_fields_follow_the_disabled_heads():
+    from baselines.fourdgs.deformation import DeformNetwork
+
+    assert DeformNetwork(hidden_args()).passed_through() == {"opacity_logits", "shs"}
+    assert DeformNetwork(hidden_args(no_dshs=False, no_ds=True)).passed_through() == {"opacity_logits", "log_scales"}
+    assert DeformNetwork(hidden_args(no_do=False, no_dshs=False)).passed_through() == frozenset()

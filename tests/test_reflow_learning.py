@@ -212,3 +212,97 @@ def test_deform_many_evaluates_each_gaussians_anchor_once_with_the_same_values_a
             assert got is None or not got.any()
         else:
             torch.testing.assert_close(got, expected, atol=1e-10, rtol=1e-8)
+
+
+def test_partner_rows_leave_what_the_view_cannot_show_undeformed_with_equal_flow_values_and_gradients():
+    """The trainer deforms a partner only for the Gaussians its batch view can show
+    (ReFlowPlugin.partner_rows -> SeparatedDeformation.alive_at -> deform_many's rows): the view's
+    composited flow channels towards the partner, and every gradient through them, equal those of
+    the partner deformed whole, in float64; the skipped rows are left canonical."""
+    model = _anchored_carpet_model(anchored=True)
+    model.deformation.window_cull = 1e-3  # ReFlow's WINDOW_CULL
+    model.deformation.double()
+    for name in ("_xyz", "_scaling", "_rotation", "_opacity", "_features_dc", "_features_rest"):
+        getattr(model, name).data = getattr(model, name).data.double()
+    n = model.num_gaussians
+    with torch.no_grad():
+        for p in model.deformation.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+        model.pop_gaussian_buffer(TIME_CENTER)
+        # keyframe copies at three times: at t_a = 0 the ones centred at 0.6 are culled, at t_b = 0.3 not
+        model.register_gaussian_buffer(TIME_CENTER, torch.tensor([-0.3, 0.0, 0.6]).repeat(n // 3 + 1)[:n]
+                                       .unsqueeze(1).double())
+    model.register_gaussian_buffer(TIME_LOG_SCALE, torch.full((n, 1), math.log(0.12), dtype=torch.float64))
+    t_a, t_b = 0.0, 0.3
+    buffers = model.deformation_inputs()
+    shown = model.deformation.alive_at(t_a, buffers)
+    deformed_at_b = model.deformation.alive_at(t_b, buffers)
+    skipped = deformed_at_b & ~shown
+    assert int(skipped.sum()) > n // 10 and bool(shown.any())
+    wrt = [model._xyz, model._scaling, model._rotation, model._opacity,
+           *(p for p in model.deformation.parameters() if p.requires_grad)]
+
+    def flow_and_grads(rows):
+        view, partner = model.deform_many((t_a, t_b), "fine", rows)
+        def project(s):
+            return project_gaussians(s.means, s.quats, s.scales, torch.eye(4, dtype=torch.float64), K.double(),
+                                     WIDTH, HEIGHT, opacities=s.opacities, backend="cpu")
+
+        proj_a, proj_b = project(view), project(partner)
+        maps, _, alpha = composite(proj_a, view.opacities, flow_features(proj_a, proj_b), WIDTH, HEIGHT, backend="cpu")
+        weights = torch.linspace(0.5, 1.5, 7, dtype=maps.dtype)  # every channel, A and c and validity
+        loss = (maps * weights).sum() + alpha.sum()
+        grads = torch.autograd.grad(loss, wrt, allow_unused=True)
+        return maps.detach(), grads, partner
+
+    whole_maps, whole_grads, _ = flow_and_grads(None)
+    maps, grads, partner = flow_and_grads([None, shown])
+    assert whole_maps.abs().sum() > 0
+    torch.testing.assert_close(maps, whole_maps, rtol=1e-12, atol=1e-12)
+    scale = max(float(g.abs().max()) for g in whole_grads if g is not None)
+    for got, expected in zip(grads, whole_grads):
+        if expected is None:
+            assert got is None or not got.any()
+        else:
+            # summation order: the network's batch has fewer rows (entries near zero differ by ~1e-12)
+            torch.testing.assert_close(got, expected, rtol=1e-10, atol=1e-10 * scale)
+    torch.testing.assert_close(partner.means[skipped], model.get_xyz.detach()[skipped], rtol=0, atol=0)
+    # a mask that drops a row the view shows changes the channels (the comparison can fail)
+    wrong = shown.clone()
+    wrong[(shown & deformed_at_b & model.deformation_table).nonzero()[:20, 0]] = False
+    assert not torch.allclose(flow_and_grads([None, wrong])[0], whole_maps, rtol=1e-12, atol=1e-12)
+
+
+def test_alive_at_claims_nothing_when_the_cull_could_leave_a_gaussian_visible():
+    model = _anchored_carpet_model(anchored=True)
+    model.register_gaussian_buffer(TIME_LOG_SCALE, torch.full((model.num_gaussians, 1), math.log(0.1)))
+    buffers = model.deformation_inputs()
+    model.deformation.window_cull = 1e-3
+    assert model.deformation.alive_at(0.9, buffers) is not None and not model.deformation.alive_at(0.9, buffers).any()
+    model.deformation.window_cull = 0.01  # above 1/255: a culled Gaussian may still be drawn
+    assert model.deformation.alive_at(0.9, buffers) is None
+
+
+def test_partner_rows_follow_the_view_of_each_partner_and_the_switch(monkeypatch):
+    """ReFlowPlugin.partner_rows: one mask per projected partner, the Gaussians alive at the time of
+    the batch view that partner belongs to; REFLOW4DGS_PARTNER_ROWS=0 asks for whole partners."""
+    from types import SimpleNamespace
+
+    from reflow_plugin.plugin import PARTNER_ROWS_SWITCH, ReFlowPlugin
+
+    model = _anchored_carpet_model(anchored=True)
+    model.deformation.window_cull = 1e-3
+    n = model.num_gaussians
+    model.pop_gaussian_buffer(TIME_CENTER)
+    model.register_gaussian_buffer(TIME_CENTER, torch.tensor([-0.5, 0.5]).repeat(n // 2 + 1)[:n].unsqueeze(1))
+    model.register_gaussian_buffer(TIME_LOG_SCALE, torch.full((n, 1), math.log(0.1)))
+    plugin = ReFlowPlugin()
+    views = [SimpleNamespace(time=-0.5), SimpleNamespace(time=0.1), SimpleNamespace(time=0.5)]
+    plugin._partner_cameras = [SimpleNamespace(time=0.0), None, SimpleNamespace(time=0.0)]  # nothing alive at 0
+    plugin._partners_projected = True
+    ctx = SimpleNamespace(model=model, batch=views)
+    early, late = plugin.partner_rows(ctx)  # the views at -0.5 and 0.5 (the one at 0.1 has no partner)
+    centres = model.deformation_inputs()[TIME_CENTER][:, 0]
+    assert torch.equal(early, centres == -0.5) and torch.equal(late, centres == 0.5)
+    monkeypatch.setenv(PARTNER_ROWS_SWITCH, "0")
+    assert plugin.partner_rows(ctx) is None

@@ -8,7 +8,7 @@ import torch
 from baselines.fourdgs.checkpoint import load_point_cloud_dir, save_point_cloud_dir
 from baselines.fourdgs.deformation import DeformNetwork
 from baselines.fourdgs.gaussian_model import GaussianModel
-from reflow_plugin.separation import SeparatedDeformation
+from reflow_plugin.separation import TIME_CENTER, SeparatedDeformation
 from tests._model_helpers import hidden_args, opt_args
 
 
@@ -189,3 +189,42 @@ def test_window_cull_deforms_only_the_copies_alive_at_t():
     assert not torch.allclose(full.means[dead], canonical.means[dead])  # without the cull they were deformed
     assert (torch.sigmoid(culled.opacity_logits[dead]) < 1e-6).all()  # and invisible either way
     torch.testing.assert_close(culled.opacity_logits[alive], full.opacity_logits[alive])
+
+
+@pytest.mark.parametrize("anchored", [False, True])
+def test_the_network_gets_stand_ins_for_the_fields_it_passes_through(anchored, monkeypatch):
+    """The dynamic rows reach the network without their SH and opacity gathered (zero-stride
+    stand-ins); the result equals the network on fully gathered rows, and the SH and opacity of
+    every row stay the input's own tensors."""
+    model = _model(zero_init=False, relative_time=anchored, anchored=anchored)
+    with torch.no_grad():
+        for level in model.deformation.deformation_net.grid.grids:
+            for index in (2, 4, 5):
+                level[index].add_(0.3 * torch.randn_like(level[index]))
+    module = model.deformation
+    assert module.passed_through() == {"shs"}  # the opacity is the temporal windows' to change
+    assert SeparatedDeformation(hidden_args(), static_decoder="triplane").passed_through() == {"shs"}
+    inner = type(module.deformation_net)
+    seen = []
+    real = inner.forward
+    monkeypatch.setattr(inner, "forward", lambda self, state, times: seen.append(state) or real(self, state, times))
+    state, table = model.canonical_state(), model.deformation_table
+    times = torch.full((model.num_gaussians, 1), 0.7)
+    buffers = {"deformation_table": table}
+    if anchored:  # keyframe centres at 0: relative time tau = t, the anchored path D(x, tau) - D(x, 0)
+        buffers[TIME_CENTER] = torch.zeros(model.num_gaussians, 1)
+    out = module(state, times, buffers)
+    assert len(seen) == 1
+    assert seen[0].shs.stride() == (0, 0, 0) and seen[0].opacity_logits.stride() == (0, 0)
+    assert out.shs is state.shs and out.opacity_logits is state.opacity_logits
+    monkeypatch.setattr(inner, "forward", real)
+    rows = table.nonzero().squeeze(1)
+    gathered = state.index(rows)
+    if anchored:
+        moved = DeformNetwork.forward(module, gathered, times[rows])
+        zero = DeformNetwork.forward(module, gathered, torch.zeros_like(times[rows]))
+        expected = gathered.means + (moved.means - zero.means)
+    else:
+        expected = DeformNetwork.forward(module, gathered, times[rows]).means
+    torch.testing.assert_close(out.means[rows], expected, rtol=1e-6, atol=1e-7)
+    torch.testing.assert_close(out.means[~table], state.means[~table], rtol=0, atol=0)

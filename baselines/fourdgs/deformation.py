@@ -41,6 +41,10 @@ _HEADS: tuple[tuple[str, int, str], ...] = (
     ("shs_deform", SH_HEAD_COEFFICIENTS * 3, "no_dshs"),
 )
 
+# the GaussianState field each head deforms
+HEAD_FIELDS = {"pos_deform": "means", "scales_deform": "log_scales", "rotations_deform": "rotations",
+               "opacity_deform": "opacity_logits", "shs_deform": "shs"}
+
 # 4DGS ModelHiddenParams defaults, used for attributes an args object does not define.
 HIDDEN_DEFAULTS: dict[str, Any] = {
     "net_width": 64,
@@ -86,8 +90,13 @@ class DeformationModule(Protocol):
     (``GaussianModel.deformation_inputs``). 4DGS's network deforms every row. Rows must be deformed
     independently of each other: ``GaussianModel.deform_many`` stacks the state once per time and
     makes one call (adding ``buffers["row_gaussian"]``, [kN] long: the Gaussian each row is, for
-    a term a module computes once per Gaussian). Optimizer groups "deformation" and "grid" are built from
-    ``get_mlp_parameters()`` and ``get_grid_parameters()``.
+    a term a module computes once per Gaussian; and, when its caller says which rows it reads,
+    ``buffers["row_used"]``, [kN] bool: a module may return the other rows undeformed). Optimizer groups "deformation" and "grid" are built from
+    ``get_mlp_parameters()`` and ``get_grid_parameters()``. Optional: ``passed_through()`` ->
+    the state fields the module returns as its input's own tensors without reading them, for any
+    input (4DGS's network: the fields of its disabled heads); ``deform_many`` then repeats only
+    the other fields and hands these as zero-copy stand-ins (state.stand_in), checking that they
+    come back untouched.
     """
 
     def __call__(
@@ -227,6 +236,11 @@ class Deformation(nn.Module):
     def active_heads(self) -> list[str]:
         return [name for name, _, flag in _HEADS if not self.flags[flag]]
 
+    def passed_through(self) -> frozenset[str]:
+        """State fields `forward` returns as its input's own tensors, unread: those of the disabled
+        heads (4DGS's defaults: opacity_logits and shs)."""
+        return frozenset(HEAD_FIELDS[name] for name, _, flag in _HEADS if self.flags[flag])
+
     def hidden(self, means: Tensor, times: Tensor) -> Tensor:
         """[N, W] trunk features of 4DGS's ``query_time``."""
         if self.no_grid:
@@ -360,6 +374,10 @@ class DeformNetwork(nn.Module):
 
     def set_aabb(self, xyz_max: Any, xyz_min: Any) -> None:
         self.deformation_net.set_aabb(xyz_max, xyz_min)
+
+    def passed_through(self) -> frozenset[str]:
+        """State fields `forward` returns as its input's own tensors, unread (`Deformation.passed_through`)."""
+        return self.deformation_net.passed_through()
 
     def get_mlp_parameters(self) -> list[nn.Parameter]:
         """4DGS's "deformation" optimizer group: deformation_net's non-grid parameters, then timenet."""

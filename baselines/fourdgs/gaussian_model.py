@@ -36,7 +36,7 @@ from torch import Tensor, nn
 from baselines.fourdgs.deformation import DeformNetwork, check_deformation_state
 from baselines.fourdgs.lr_schedule import get_expon_lr_func
 from baselines.fourdgs.optimizer_state import check_state_by_group_name, load_state_by_group_name, swap_group_param
-from baselines.fourdgs.state import STATE_FIELDS, GaussianState, activate_log_scales
+from baselines.fourdgs.state import STATE_FIELDS, GaussianState, activate_log_scales, stand_in
 
 SH_C0 = 0.28209479177387814
 TIME_OUTSIDE_MODES = ("extrapolate", "hold", "linear")  # see GaussianModel.set_time_span
@@ -552,7 +552,8 @@ class GaussianModel:
             out = out.replace(means=2.0 * out.means - before)
         return out
 
-    def deform_many(self, times: Sequence[float], stage: str) -> list[GaussianState]:
+    def deform_many(self, times: Sequence[float], stage: str,
+                    rows: Sequence[Tensor | None] | None = None) -> list[GaussianState]:
         """The Gaussians at each of `times` (scalars), equal to ``[deform(t, stage) for t in times]``.
 
         Several times inside the training span go through the deformation module in ONE call on
@@ -560,7 +561,13 @@ class GaussianModel:
         a HexPlane field and its MLP (hundreds of small kernels on a GPU) is paid once for a
         view and its partner frame. A time outside the span (its clamping and extrapolation) or a
         single time takes ``deform``'s path.
+
+        `rows[k]` ([N] bool, or None for all): the Gaussians whose state at times[k] the caller
+        reads. The module gets them as ``buffers["row_used"]`` ([kN] bool) and may leave the other
+        rows undeformed (equal to the canonical state); on ``deform``'s path every row is deformed.
         """
+        if rows is not None and len(rows) != len(times):
+            raise ValueError(f"deform_many: {len(rows)} row masks for {len(times)} times")
         times = [float(t) for t in times]
         span = self.time_span
         outside = span is not None and self.time_outside != "extrapolate" and not all(
@@ -568,13 +575,26 @@ class GaussianModel:
         if stage != "fine" or len(times) < 2 or outside:
             return [self.deform(t, stage) for t in times]
         state, count = self.canonical_state(), self.num_gaussians
-        repeated = GaussianState.cat([state] * len(times))
+        # fields the module passes through unread are not repeated (SH: 48 of a row's 59 values)
+        passed = getattr(self._deformation, "passed_through", frozenset)()
+        repeated = GaussianState(*(stand_in(getattr(state, name), len(times) * count) if name in passed
+                                   else torch.cat([getattr(state, name)] * len(times)) for name in STATE_FIELDS))
         column = torch.tensor(times, device=self.device, dtype=self._xyz.dtype).repeat_interleave(count).unsqueeze(1)
         # per-Gaussian inputs (registered buffers, deformation_table) follow the repeated rows
         inputs = {name: torch.cat([value] * len(times)) for name, value in self.deformation_inputs().items()}
         # which Gaussian each repeated row is: a module may compute a time-independent term once per Gaussian
         inputs["row_gaussian"] = torch.arange(count, device=self.device).repeat(len(times))
+        if rows is not None and any(r is not None for r in rows):
+            for r in rows:
+                if r is not None and (r.dtype != torch.bool or tuple(r.shape) != (count,)):
+                    raise ValueError(f"deform_many: a row mask must be [{count}] bool, got {r.dtype} {list(r.shape)}")
+            inputs["row_used"] = torch.cat([torch.ones(count, dtype=torch.bool, device=self.device) if r is None
+                                            else r.to(self.device) for r in rows])
         out = self._deformation(repeated, column, inputs)
+        for name in passed:
+            if getattr(out, name) is not getattr(repeated, name):
+                raise RuntimeError(f"deform_many: {type(self._deformation).__name__} changed {name}, which its "
+                                   "passed_through() says it returns untouched")
         # A field the module passed through unchanged (4DGS's disabled heads: SH, opacity) is the
         # canonical tensor at every time: its gradient then reaches the parameter directly instead
         # of through k slices and a concatenation of [kN, ...] zeros (same values and gradients).

@@ -100,6 +100,16 @@ class Plugin:
         """
         return None
 
+    def partner_rows(self, ctx: TrainContext) -> list[Tensor | None] | None:
+        """Per camera of `select_partners` (same order): [N] bool, the Gaussians whose state at its
+        time the plugin will read, or None (all); None for all partners.
+
+        The deformation module may leave the other rows of that partner undeformed (canonical), which
+        saves their deformation: e.g. ReFlow reads a partner's projection only through flow channels
+        of a batch view, so a Gaussian the view cannot show is not needed at the partner's time.
+        """
+        return None
+
     def extra_features(self, ctx: TrainContext, view_index: int) -> dict[str, Tensor] | None:
         """Per-Gaussian feature channels to composite in view `view_index`'s pass.
 

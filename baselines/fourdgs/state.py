@@ -9,7 +9,7 @@ properties computed on access.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -30,6 +30,14 @@ def activate_log_scales(log_scales: Tensor) -> Tensor:
     """[..., 3] log-scales -> standard deviations exp(min(log_scale, MAX_LOG_SCALE)), always finite
     for finite input."""
     return torch.exp(log_scales.clamp(max=MAX_LOG_SCALE))
+
+
+def stand_in(like: Tensor, rows: int) -> Tensor:
+    """[rows, *like.shape[1:]] zeros of like's dtype and device that take no memory (one value
+    broadcast) and carry no gradient: a field a callee must pass through without reading it.
+    Whoever hands one over checks that it came back as the same object, so it never reaches a
+    render or a loss (`GaussianModel.deform_many`, reflow_plugin.separation)."""
+    return like.new_zeros(()).expand(rows, *like.shape[1:])
 
 
 @dataclass(frozen=True)
@@ -109,10 +117,12 @@ class GaussianState:
 
     # ----------------------------------------------------------------------------------------
     # Cheap structural helpers.
-    def index(self, selection: Tensor | slice | Sequence[int]) -> GaussianState:
+    def index(self, selection: Tensor | slice | Sequence[int], stand_ins: Collection[str] = ()) -> GaussianState:
         """Rows picked by a bool mask [N], an index tensor, a list of indices or a slice.
 
-        Slices return views (no copy); masks and index lists gather.
+        Slices return views (no copy); masks and index lists gather. Fields named in `stand_ins`
+        are not gathered: they become `stand_in`s of the right shape (for a callee that passes
+        them through unread, e.g. a deformation module's `passed_through()` fields).
         """
         if isinstance(selection, slice):
             return GaussianState(*(getattr(self, f)[selection] for f in _FIELDS))
@@ -123,7 +133,11 @@ class GaussianState:
                 f"GaussianState.index: bool mask of shape {list(selection.shape)} for "
                 f"{self.num_gaussians} Gaussians"
             )
-        return GaussianState(*(getattr(self, f)[selection] for f in _FIELDS))
+        if not stand_ins:
+            return GaussianState(*(getattr(self, f)[selection] for f in _FIELDS))
+        rows = int(selection.sum()) if selection.dtype == torch.bool else selection.numel()
+        return GaussianState(*(stand_in(getattr(self, f), rows) if f in stand_ins else getattr(self, f)[selection]
+                               for f in _FIELDS))
 
     @staticmethod
     def cat(states: Sequence[GaussianState]) -> GaussianState:

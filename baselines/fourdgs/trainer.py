@@ -43,7 +43,7 @@ from .final_stretch import final_stretch
 from .gaussian_model import GaussianModel
 from .hooks import HookRunner, TrainContext
 from .interrupt import StopFlag, deferred_interrupt
-from .plugins import Plugin
+from .plugins import Plugin, PluginError
 from .renderer import composite_view, prepare_views, render
 from baselines.run_folder import (RunFolder, RunIdentity, TrainingInterrupted, check_resume_identity,
                                   check_upgrade_plugins)
@@ -246,12 +246,16 @@ class Trainer:
             model.oneupSHdegree()
         ctx.batch = self.hooks.first("select_batch", ctx) or self.sampler.next_batch(opt.batch_size)
         partners = self.hooks.first("select_partners", ctx) or []
+        rows = (self.hooks.first("partner_rows", ctx) if partners else None) or [None] * len(partners)
+        if len(rows) != len(partners):
+            raise PluginError(f"partner_rows returned {len(rows)} masks for {len(partners)} partner cameras")
         ctx.losses, ctx.metrics, ctx.densify_record = {}, {}, None
 
         with self.timer("deform_project"):
             # one deformation call for the batch and the partner frames (prepare_views)
             prepared = prepare_views(model, [*ctx.batch, *partners], ctx.stage, self.pipe.backend,
-                                     [True] * len(ctx.batch) + [False] * len(partners))
+                                     [True] * len(ctx.batch) + [False] * len(partners),
+                                     [None] * len(ctx.batch) + list(rows))
             ctx.views, ctx.partners = prepared[:len(ctx.batch)], prepared[len(ctx.batch):]
         with self.timer("rasterize"):
             for k, view in enumerate(ctx.views):
