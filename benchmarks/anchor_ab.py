@@ -21,6 +21,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 if __package__ in (None, ""):
     sys.path.insert(0, str(REPO_ROOT))
 
+from benchmarks.cli import split_passthrough  # noqa: E402
 from benchmarks.machine import cpu_model, load_average  # noqa: E402
 
 from baselines.thread_policy import apply_thread_policy  # noqa: E402
@@ -28,8 +29,7 @@ from baselines.thread_policy import apply_thread_policy  # noqa: E402
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    train_argv = argv[argv.index("--") + 1:] if "--" in argv else []
-    own = argv[:argv.index("--")] if "--" in argv else argv
+    own, train_argv = split_passthrough(argv)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--iters", type=int, default=3, help="iterations per block")
     parser.add_argument("--rounds", type=int, default=5)

@@ -52,6 +52,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.cli import split_passthrough  # noqa: E402
 from benchmarks import real_suite  # noqa: E402
 from benchmarks.real_captures import DEFAULT_DATA, Capture, CaptureError, require_ready, select  # noqa: E402
 
@@ -181,9 +182,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    extra: list[str] = []
-    if "--" in argv:
-        extra, argv = argv[argv.index("--") + 1:], argv[:argv.index("--")]
+    argv, extra = split_passthrough(argv)
     args = build_parser().parse_args(argv)
     try:
         if args.jobs < 1:

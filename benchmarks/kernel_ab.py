@@ -29,6 +29,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 if __package__ in (None, ""):
     sys.path.insert(0, str(REPO_ROOT))
 
+from benchmarks.cli import split_passthrough  # noqa: E402
 from benchmarks.machine import cpu_model, load_average  # noqa: E402
 
 from baselines.thread_policy import apply_thread_policy  # noqa: E402
@@ -69,9 +70,7 @@ def interleaved(trainer, iters: int, rounds: int) -> dict[str, float]:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    train_argv: list[str] = []
-    if "--" in argv:
-        train_argv, argv = argv[argv.index("--") + 1:], argv[:argv.index("--")]
+    argv, train_argv = split_passthrough(argv)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--iters", type=int, default=4, help="timed iterations per block")
     parser.add_argument("--rounds", type=int, default=4, help="blocks per variant")

@@ -34,6 +34,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 if __package__ in (None, ""):
     sys.path.insert(0, str(REPO_ROOT))
 
+from benchmarks.cli import split_passthrough  # noqa: E402
 from benchmarks.machine import cpu_model, load_average  # noqa: E402
 
 from baselines.thread_policy import apply_thread_policy  # noqa: E402
@@ -240,9 +241,7 @@ def print_profile(result: dict) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    train_argv: list[str] = []
-    if "--" in argv:
-        train_argv, argv = argv[argv.index("--") + 1:], argv[:argv.index("--")]
+    argv, train_argv = split_passthrough(argv)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model_from", type=Path, help="a point_cloud/iteration_N folder trained with the same config")
     parser.add_argument("--warmup", type=int, default=500, help="fine iterations before measuring (no --model_from)")

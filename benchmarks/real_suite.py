@@ -63,6 +63,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.cli import split_passthrough  # noqa: E402
 from benchmarks.real_captures import (CAPTURES, DEFAULT_DATA, Capture, CaptureError, dataset_dir,  # noqa: E402
                                       fetch_instructions, require_ready, select, setup)
 
@@ -489,9 +490,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    extra: list[str] = []
-    if "--" in argv:
-        extra, argv = argv[argv.index("--") + 1:], argv[:argv.index("--")]
+    argv, extra = split_passthrough(argv)
     args = build_parser().parse_args(argv)
     try:
         if args.setup:

@@ -26,6 +26,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 if __package__ in (None, ""):
     sys.path.insert(0, str(REPO_ROOT))
 
+from benchmarks.cli import split_passthrough  # noqa: E402
 from benchmarks.machine import cpu_model, load_average  # noqa: E402
 
 from baselines.thread_policy import apply_thread_policy  # noqa: E402
@@ -93,9 +94,7 @@ def interleaved_steps(trainer, steps: int, rounds: int) -> dict[str, float]:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    train_argv: list[str] = []
-    if "--" in argv:
-        train_argv, argv = argv[argv.index("--") + 1:], argv[:argv.index("--")]
+    argv, train_argv = split_passthrough(argv)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=9, help="timed calls per engine")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (the kernel uses as many)")

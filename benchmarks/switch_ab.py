@@ -29,6 +29,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 if __package__ in (None, ""):
     sys.path.insert(0, str(REPO_ROOT))
 
+from benchmarks.cli import split_passthrough  # noqa: E402
 from benchmarks.machine import cpu_model, load_average  # noqa: E402
 
 from baselines.thread_policy import apply_thread_policy  # noqa: E402
@@ -87,9 +88,7 @@ def interleaved(trainers: dict, switch: str, iters: int, rounds: int) -> tuple[d
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    train_argv: list[str] = []
-    if "--" in argv:
-        train_argv, argv = argv[argv.index("--") + 1:], argv[:argv.index("--")]
+    argv, train_argv = split_passthrough(argv)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--switch", required=True, help="environment variable whose 0 turns the change off")
     parser.add_argument("--iters", type=int, default=2, help="timed iterations per block")
