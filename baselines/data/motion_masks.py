@@ -125,6 +125,102 @@ def static_scene_error(flow: np.ndarray, K_a: np.ndarray, viewmat_a: np.ndarray,
     return np.minimum(epipolar, homography_error).astype(np.float32)
 
 
+def depth_consistent_errors(flows: Sequence[np.ndarray], reliable: Sequence[np.ndarray], K_a: np.ndarray,
+                            viewmat_a: np.ndarray, Ks_b: Sequence[np.ndarray], viewmats_b: Sequence[np.ndarray],
+                            min_inverse_depth: np.ndarray | float = 0.0) -> list[np.ndarray]:
+    """Per pair [H, W] pixels: how far q + flow_k(q) lies from where ONE static point on q's ray,
+    shared by every pair, would land in view b_k.
+
+    A static pixel has one depth: each pair's flow gives it an inverse depth w_k (its position
+    along the epipolar line), and one w explains all pairs. A pixel moving along the epipolar
+    lines fits a line position per pair, but no single depth unless its motion mimics parallax
+    exactly; and an object the camera follows (flow near zero while the background streams past)
+    fits only a depth farther than the background around it. So w is bounded below by
+    `min_inverse_depth` ([H, W] or a scalar, 1 / the farthest plausible static depth, e.g.
+    `farthest_static_inverse_depth` of the sparse points) and chosen per pixel among the pairs'
+    w_k (clamped to the bound) as the one with the smallest median error over the reliable pairs.
+
+    Args:
+        flows: per partner [H, W, 2] flow a -> b_k; reliable: per partner [H, W] bool (pixels
+            whose flow is trusted; the others do not vote for w but still get an error).
+        K_a, viewmat_a: [3, 3] intrinsics and [4, 4] world->camera of view a; Ks_b, viewmats_b: per partner.
+    Returns:
+        one [H, W] float32 error per partner (inf where the chosen point is behind camera b_k).
+    """
+    if not flows:
+        return []
+    h, w = flows[0].shape[:2]
+    x, y = pixel_grid(h, w)
+    rays = np.stack([x, y, np.ones_like(x)], -1).astype(np.float64) @ np.linalg.inv(np.asarray(K_a, np.float64)).T
+    floor = np.broadcast_to(np.maximum(np.asarray(min_inverse_depth, np.float64), 0.0), (h, w))
+    targets, near, shift = [], [], []  # per pair: [H, W, 2] target; K_b R r [H, W, 3]; K_b t [3]
+    fitted = []
+    for flow, K_b, viewmat_b in zip(flows, Ks_b, viewmats_b):
+        rotation, translation = relative_pose(viewmat_a, viewmat_b)
+        K_b = np.asarray(K_b, np.float64)
+        A = rays @ (K_b @ rotation).T  # the point at infinity (w = 0), homogeneous in b
+        B = K_b @ translation  # how the point moves per unit of inverse depth
+        target = np.stack([x + flow[..., 0], y + flow[..., 1]], -1).astype(np.float64)
+        # target * (A_z + w B_z) = A_xy + w B_xy, least squares in w (two equations per pixel)
+        u = B[:2] - target * B[2]
+        v = target * A[..., 2:3] - A[..., :2]
+        fitted.append((u * v).sum(-1) / np.clip((u * u).sum(-1), 1e-18, None))
+        targets.append(target)
+        near.append(A)
+        shift.append(B)
+
+    def errors_at(inverse_depth: np.ndarray) -> np.ndarray:
+        """[pairs, H, W] pixels between each target and the point at `inverse_depth` [H, W]."""
+        out = []
+        for target, A, B in zip(targets, near, shift):
+            point = A + inverse_depth[..., None] * B
+            ahead = point[..., 2] > 1e-9
+            projected = point[..., :2] / np.where(ahead, point[..., 2], 1.0)[..., None]
+            out.append(np.where(ahead, np.linalg.norm(target - projected, axis=-1), np.inf))
+        return np.stack(out)
+
+    votes = np.stack([np.asarray(ok, bool) for ok in reliable])  # [pairs, H, W]
+    best_cost = np.full((h, w), np.inf)
+    best = errors_at(floor)  # no reliable vote: the bound itself
+    for candidate in fitted:
+        candidate = np.maximum(np.nan_to_num(candidate, nan=0.0, posinf=0.0, neginf=0.0), floor)
+        errors = errors_at(candidate)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            cost = np.nanmedian(np.where(votes, errors, np.nan), axis=0)
+        better = np.nan_to_num(cost, nan=np.inf) < best_cost
+        best_cost = np.where(better, cost, best_cost)
+        best = np.where(better[None], errors, best)
+    return [error.astype(np.float32) for error in best]
+
+
+def farthest_static_inverse_depth(points_xy: np.ndarray, inverse_depths: np.ndarray, shape: tuple[int, int],
+                                  radius_px: int, margin: float) -> np.ndarray:
+    """[H, W] lower bound on a static pixel's inverse depth from a view's sparse points.
+
+    `points_xy` [N, 2] pixel positions and `inverse_depths` [N] (1 / z in that view) of the SfM
+    points it observes. Each pixel gets the smallest inverse depth (the farthest point) within a
+    square of half-size `radius_px`, times `margin` (< 1: room for static surfaces behind the
+    points seen nearby); pixels with no point that close get the view's 5th percentile, times
+    `margin`. No points at all: 0 (no bound).
+    """
+    h, w = shape
+    inverse_depths = np.asarray(inverse_depths, np.float64)
+    xy = np.asarray(points_xy, np.float64).reshape(-1, 2)
+    keep = np.isfinite(inverse_depths) & (inverse_depths > 0) & np.isfinite(xy).all(1)
+    keep &= (xy[:, 0] >= 0) & (xy[:, 0] < w) & (xy[:, 1] >= 0) & (xy[:, 1] < h)
+    if not keep.any():
+        return np.zeros(shape, np.float32)
+    grid = np.full(shape, np.inf, np.float32)
+    columns, rows = xy[keep, 0].astype(int), xy[keep, 1].astype(int)
+    np.minimum.at(grid, (rows, columns), inverse_depths[keep].astype(np.float32))
+    # erosion of a float image = the minimum over the kernel; inf where no point is within reach
+    nearest = cv2.erode(grid, np.ones((2 * radius_px + 1,) * 2, np.uint8), borderType=cv2.BORDER_CONSTANT,
+                        borderValue=np.inf)
+    fallback = float(np.percentile(inverse_depths[keep], 5))
+    return (margin * np.where(np.isfinite(nearest), nearest, fallback)).astype(np.float32)
+
+
 def clean_mask(mask: np.ndarray, options: MotionMaskOptions) -> np.ndarray:
     """Opening, closing and small-component removal of a [H, W] bool mask."""
     out = mask.astype(np.uint8)
@@ -169,27 +265,34 @@ def estimate_motion_masks(images: Sequence[np.ndarray], Ks: Sequence[np.ndarray]
 
 
 PairError = Callable[[int, int, np.ndarray], np.ndarray]
+# frame_errors(a, partners, flows a->b, reliable [H, W] bool per partner) -> one [H, W] error per partner
+FrameErrors = Callable[[int, list[int], list[np.ndarray], list[np.ndarray]], list[np.ndarray]]
 
 
-def _frame_scores(images: Sequence[np.ndarray], a: int, offsets: Sequence[int], pair_error: PairError,
+def _frame_scores(images: Sequence[np.ndarray], a: int, offsets: Sequence[int], frame_errors: FrameErrors,
                   min_scale_px: float) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """(normalised score [H, W], raw score [H, W] in pixels, frames paired) of frame a: the per-pixel
     median over its pairs of the static-scene error, each pair's divided by its robust scale;
     pixels whose flow fails the forward-backward test in every pair score 0 (no evidence)."""
     n = len(images)
-    normalised, raw, pairs = [], [], []
+    partners, flows, reliable = [], [], []
     for offset in offsets:
         b = a + offset
         if not 0 <= b < n or b == a:
             continue
         fwd, bwd = flow_pair(images[a], images[b])
-        error = pair_error(a, b, fwd)
-        reliable = consistent(fwd, bwd) & np.isfinite(error)
-        if not reliable.any():
+        partners.append(b)
+        flows.append(fwd)
+        reliable.append(consistent(fwd, bwd))
+    normalised, raw, pairs = [], [], []
+    errors = frame_errors(a, partners, flows, reliable) if partners else []
+    for b, error, ok in zip(partners, errors, reliable):
+        ok = ok & np.isfinite(error)
+        if not ok.any():
             continue
-        scale = max(float(np.median(error[reliable])), min_scale_px)
-        normalised.append(np.where(reliable, error / scale, np.nan))
-        raw.append(np.where(reliable, error, np.nan))
+        scale = max(float(np.median(error[ok])), min_scale_px)
+        normalised.append(np.where(ok, error / scale, np.nan))
+        raw.append(np.where(ok, error, np.nan))
         pairs.append(b)
     shape = np.asarray(images[a]).shape[:2]
     if not normalised:
@@ -214,6 +317,18 @@ def masks_from_pair_errors(images: Sequence[np.ndarray], pair_error: PairError,
     `report.scores` holds each frame's normalised score (the median over its pairs, see
     `_frame_scores`), for refinements that need to know which pixels the geometry calls static.
     """
+    def frame_errors(a: int, partners: list[int], flows: list[np.ndarray], _reliable) -> list[np.ndarray]:
+        return [pair_error(a, b, flow) for b, flow in zip(partners, flows)]
+
+    return masks_from_frame_errors(images, frame_errors, options, keep_scores)
+
+
+def masks_from_frame_errors(images: Sequence[np.ndarray], frame_errors: FrameErrors,
+                            options: MotionMaskOptions | None = None,
+                            keep_scores: bool = False) -> tuple[list[np.ndarray], MaskReport]:
+    """`masks_from_pair_errors` for tests that judge a frame's pairs jointly (one depth per pixel
+    shared by all pairs, `depth_consistent_errors`): `frame_errors(a, partners, flows, reliable)`
+    gets every flow of frame a at once and returns one [H, W] error (pixels) per partner."""
     options = options or MotionMaskOptions()
     n = len(images)
     if n == 0:
@@ -225,13 +340,13 @@ def masks_from_pair_errors(images: Sequence[np.ndarray], pair_error: PairError,
     report = MaskReport(pairs=[[] for _ in range(n)])
     masks = []
     for a in range(n):
-        score, raw_score, pairs = _frame_scores(images, a, options.offsets, pair_error, options.min_scale_px)
+        score, raw_score, pairs = _frame_scores(images, a, options.offsets, frame_errors, options.min_scale_px)
         report.pairs[a] = pairs
         if keep_scores:
             report.scores.append(score.astype(np.float32))
         moving = (score > options.threshold) & (raw_score > options.min_error_px)
         if options.slow_offsets:
-            slow, slow_raw, _ = _frame_scores(images, a, options.slow_offsets, pair_error, options.min_scale_px)
+            slow, slow_raw, _ = _frame_scores(images, a, options.slow_offsets, frame_errors, options.min_scale_px)
             # slow motion: flagged over frames far apart, and not quite static between near ones
             moving |= ((slow > options.threshold) & (slow_raw > options.slow_min_error_px)
                        & (score > options.slow_gate))
