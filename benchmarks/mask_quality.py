@@ -1,6 +1,7 @@
 """Quality of `prepare`'s automatic motion masks on prepared DAVIS clips, mask stage only.
 
     nice -n 5 python benchmarks/mask_quality.py --data /work/realdata [--clips dog,libby] [--json OUT.json]
+    nice -n 5 python benchmarks/mask_quality.py --data /work/realdata --posed     # the post-mapping masks
 
 For each clip folder `<data>/davis_<clip>/` (written by `benchmarks/prepare_davis.py`: `images/`
 the extracted frames, `gt/motion_masks/` the DAVIS annotations at the frames' size), runs only the
@@ -11,6 +12,11 @@ annotations (pixels pooled over the clip's frames, as in docs/DATASETS.md) and t
 seconds. Clips are split into a TUNING half (the clips the method's constants were chosen on)
 and HELD-OUT clips, with a mean for each, so that a change can be judged on clips it was not
 tuned on. Clips without camera motion (breakdance, drift-chicane) have no frames and are skipped.
+
+`--posed` scores the post-mapping stage instead (`baselines.prepare.remask.posed_masks`): the
+cameras and sparse points are read from each clip's `sparse/0/`, the frames from `images/` (the
+registered frames, which the annotations are matched to by name). Nothing is written into the
+clip folders.
 """
 from __future__ import annotations
 
@@ -28,6 +34,7 @@ sys.path.insert(0, str(ROOT))
 
 from baselines.prepare.masks import motion_masks  # noqa: E402
 from baselines.prepare.parallax import measure_parallax  # noqa: E402
+from baselines.prepare.remask import posed_masks, read_posed_dataset  # noqa: E402
 from benchmarks.prepare_davis import mask_scores  # noqa: E402
 
 TUNING = ("dog", "libby", "goat", "cows", "scooter_black")
@@ -47,12 +54,18 @@ def read_clip(folder: Path) -> tuple[list[np.ndarray], list[np.ndarray]]:
     return images, truth
 
 
-def evaluate(folder: Path) -> dict:
-    """Scores and seconds of the auto masks of one clip folder."""
+def evaluate(folder: Path, posed: bool = False) -> dict:
+    """Scores and seconds of the auto masks of one clip folder (`posed`: the post-mapping masks)."""
     images, truth = read_clip(folder)
     start = time.perf_counter()
     motion = measure_parallax(images).frame_motion_px
-    masks, _ = motion_masks(images, "auto", motion, progress=False)
+    if posed:
+        names, frames, Ks, viewmats, views = read_posed_dataset(folder)
+        index = {path.name: k for k, path in enumerate(sorted((folder / "images").glob("*.png")))}
+        truth = [truth[index[name]] for name in names]
+        masks = posed_masks(frames, Ks, viewmats, views, motion, progress=False)
+    else:
+        masks, _ = motion_masks(images, "auto", motion, progress=False)
     seconds = time.perf_counter() - start
     return {**mask_scores(masks, truth), "seconds": seconds, "frames": len(images), "frame_motion_px": motion}
 
@@ -85,13 +98,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, required=True, help="folder holding the davis_<clip>/ datasets")
     parser.add_argument("--clips", help="comma list of clips (default: the tuning and held-out clips found)")
     parser.add_argument("--json", type=Path, help="also write the raw figures here")
+    parser.add_argument("--posed", action="store_true",
+                        help="score the post-mapping masks (cameras and points from each clip's sparse/0)")
     args = parser.parse_args(argv)
     names = ([n.strip().removeprefix("davis_").replace("-", "_") for n in args.clips.split(",") if n.strip()]
              if args.clips else list(TUNING + HELD_OUT))
     folders = {n: args.data / f"davis_{n}" for n in names}
-    missing = [str(f) for f in folders.values() if not (f / "images").is_dir() or not (f / "gt" / "motion_masks").is_dir()]
+    missing = [str(f) for f in folders.values() if not (f / "images").is_dir() or not (f / "gt" / "motion_masks").is_dir()
+               or (args.posed and not (f / "sparse" / "0").is_dir())]
     if args.clips and missing:
-        print(f"error: no prepared clip (images/ and gt/motion_masks/) at {missing[0]}", file=sys.stderr)
+        print(f"error: no prepared clip (images/, gt/motion_masks/{' and sparse/0/' if args.posed else ''}) at {missing[0]}",
+              file=sys.stderr)
         return 2
     folders = {n: f for n, f in folders.items() if str(f) not in missing}
     if not folders:
@@ -100,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     results = {}
     for name, folder in folders.items():
-        results[name] = evaluate(folder)
+        results[name] = evaluate(folder, args.posed)
         r = results[name]
         print(f"{name}: IoU {r['IoU']:.3f} precision {r['precision']:.3f} recall {r['recall']:.3f} "
               f"({r['seconds']:.1f} s)", file=sys.stderr, flush=True)

@@ -127,7 +127,9 @@ def static_scene_error(flow: np.ndarray, K_a: np.ndarray, viewmat_a: np.ndarray,
 
 def depth_consistent_errors(flows: Sequence[np.ndarray], reliable: Sequence[np.ndarray], K_a: np.ndarray,
                             viewmat_a: np.ndarray, Ks_b: Sequence[np.ndarray], viewmats_b: Sequence[np.ndarray],
-                            min_inverse_depth: np.ndarray | float = 0.0) -> list[np.ndarray]:
+                            min_inverse_depth: np.ndarray | float = 0.0,
+                            parallax_tolerance: float = 0.0,
+                            max_inverse_depth: np.ndarray | float = np.inf) -> list[np.ndarray]:
     """Per pair [H, W] pixels: how far q + flow_k(q) lies from where ONE static point on q's ray,
     shared by every pair, would land in view b_k.
 
@@ -153,6 +155,7 @@ def depth_consistent_errors(flows: Sequence[np.ndarray], reliable: Sequence[np.n
     x, y = pixel_grid(h, w)
     rays = np.stack([x, y, np.ones_like(x)], -1).astype(np.float64) @ np.linalg.inv(np.asarray(K_a, np.float64)).T
     floor = np.broadcast_to(np.maximum(np.asarray(min_inverse_depth, np.float64), 0.0), (h, w))
+    ceiling = np.maximum(np.broadcast_to(np.asarray(max_inverse_depth, np.float64), (h, w)), floor)
     targets, near, shift = [], [], []  # per pair: [H, W, 2] target; K_b R r [H, W, 3]; K_b t [3]
     fitted = []
     for flow, K_b, viewmat_b in zip(flows, Ks_b, viewmats_b):
@@ -176,14 +179,18 @@ def depth_consistent_errors(flows: Sequence[np.ndarray], reliable: Sequence[np.n
             point = A + inverse_depth[..., None] * B
             ahead = point[..., 2] > 1e-9
             projected = point[..., :2] / np.where(ahead, point[..., 2], 1.0)[..., None]
-            out.append(np.where(ahead, np.linalg.norm(target - projected, axis=-1), np.inf))
+            error = np.linalg.norm(target - projected, axis=-1)
+            if parallax_tolerance > 0:  # near static surfaces: pose and flow errors grow with the parallax
+                far = A[..., :2] / np.clip(A[..., 2:3], 1e-9, None)
+                error = error / (1.0 + parallax_tolerance * np.linalg.norm(projected - far, axis=-1))
+            out.append(np.where(ahead, error, np.inf))
         return np.stack(out)
 
     votes = np.stack([np.asarray(ok, bool) for ok in reliable])  # [pairs, H, W]
     best_cost = np.full((h, w), np.inf)
     best = errors_at(floor)  # no reliable vote: the bound itself
     for candidate in fitted:
-        candidate = np.maximum(np.nan_to_num(candidate, nan=0.0, posinf=0.0, neginf=0.0), floor)
+        candidate = np.clip(np.nan_to_num(candidate, nan=0.0, posinf=0.0, neginf=0.0), floor, ceiling)
         errors = errors_at(candidate)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
@@ -192,6 +199,26 @@ def depth_consistent_errors(flows: Sequence[np.ndarray], reliable: Sequence[np.n
         best_cost = np.where(better, cost, best_cost)
         best = np.where(better[None], errors, best)
     return [error.astype(np.float32) for error in best]
+
+
+def nearest_static_inverse_depth(points_xy: np.ndarray, inverse_depths: np.ndarray, shape: tuple[int, int],
+                                 radius_px: int, margin: float) -> np.ndarray:
+    """[H, W] upper bound on a static pixel's inverse depth: the largest inverse depth (the nearest
+    point) within `radius_px`, divided by `margin`; the view's 95th percentile / margin where no
+    point is that close; inf without points."""
+    h, w = shape
+    inverse_depths = np.asarray(inverse_depths, np.float64)
+    xy = np.asarray(points_xy, np.float64).reshape(-1, 2)
+    keep = np.isfinite(inverse_depths) & (inverse_depths > 0) & np.isfinite(xy).all(1)
+    keep &= (xy[:, 0] >= 0) & (xy[:, 0] < w) & (xy[:, 1] >= 0) & (xy[:, 1] < h)
+    if not keep.any():
+        return np.full(shape, np.inf, np.float32)
+    grid = np.full(shape, -np.inf, np.float32)
+    np.maximum.at(grid, (xy[keep, 1].astype(int), xy[keep, 0].astype(int)), inverse_depths[keep].astype(np.float32))
+    nearest = cv2.dilate(grid, np.ones((2 * radius_px + 1,) * 2, np.uint8), borderType=cv2.BORDER_CONSTANT,
+                         borderValue=-np.inf)
+    fallback = float(np.percentile(inverse_depths[keep], 95))
+    return (np.where(np.isfinite(nearest), nearest, fallback) / margin).astype(np.float32)
 
 
 def farthest_static_inverse_depth(points_xy: np.ndarray, inverse_depths: np.ndarray, shape: tuple[int, int],

@@ -1,8 +1,10 @@
 """`prepare()`: video or frame folder -> COLMAP-layout dataset, stage by stage, reusing what is done.
 
 Stages (each skipped when its key, see `cache.py`, matches a finished run in `<out>/.prepare/`):
-frames -> parallax check -> masks -> features -> matching -> mapping; then the dataset and the
-report are written. Checks that need no decoding (missing input, empty or mixed-size folder,
+frames -> parallax check -> masks -> features -> matching -> mapping -> posed masks; then the
+dataset and the report are written. With `--masks auto` the pre-SfM masks keep movers out of
+feature extraction and the dataset's `motion_masks/` gets the posed masks (`remask.py`:
+re-estimated with the registered cameras); a folder of masks is written as given. Checks that need no decoding (missing input, empty or mixed-size folder,
 unreadable video, bad options, output folder owned by something else) run first.
 """
 from __future__ import annotations
@@ -21,6 +23,7 @@ from .errors import PrepareError
 from .frames import extract_frames, probe_source
 from .masks import colmap_mask, motion_masks
 from .parallax import explain_failure, measure_parallax, require_camera_motion
+from .remask import mask_entry, posed_masks, read_posed_dataset, write_masks
 from .report import model_statistics, summary_lines, write_report
 from .sfm import (CAMERA_MODELS, SfmOptions, better_model, extract_features, global_map_frames, map_frames,
                   match_frames, model_quality, read_model)
@@ -142,6 +145,27 @@ def _sfm_stages(options: PrepareOptions, cache: StageCache, masks_key: str, name
     return model, verified, mapper
 
 
+def _posed_masks_stage(options: PrepareOptions, cache: StageCache, key: str, out: Path, pre_sfm: dict,
+                       frame_motion_px: float | None, work: Path) -> dict:
+    """Re-estimate the written dataset's masks with its cameras (`remask.py`), reused when done;
+    writes `out/motion_masks/` and returns the report's "masks" entry."""
+    folder = work / "posed_masks"
+    if cache.done("posed_masks", key) and folder.is_dir():
+        names = sorted(p.name for p in (out / "images").iterdir())
+        masks = [cv2.imread(str(folder / n), cv2.IMREAD_GRAYSCALE) > 0 for n in names]
+        write_masks(out, names, masks)
+        return cache.extra("posed_masks")
+    start = time.perf_counter()
+    names, frames, Ks, viewmats, views = read_posed_dataset(out)
+    masks = posed_masks(frames, Ks, viewmats, views, frame_motion_px, progress=options.progress)
+    write_masks(out, names, masks)
+    shutil.rmtree(folder, ignore_errors=True)
+    shutil.copytree(out / "motion_masks", folder)
+    entry = mask_entry(masks, pre_sfm, time.perf_counter() - start)
+    cache.finish("posed_masks", key, entry)
+    return entry
+
+
 def _dropped(names: list[str], registered: set[str], models_dir: Path) -> list[dict]:
     """Each unregistered frame with the reason."""
     elsewhere: dict[str, int] = {}
@@ -197,6 +221,12 @@ def prepare(options: PrepareOptions) -> dict:
     scale = rescale(model)
     times = frame_times(names)
     write_dataset(out, model, frame_dir, registered, times, masks)
+    if options.masks == "auto":
+        posed_key = cache.key(masks_key, mapper, registered, "posed_masks")
+        mask_info = _posed_masks_stage(options, cache, posed_key, out, {**mask_info, "stage": "pre-sfm"},
+                                       parallax.frame_motion_px, work)
+    elif masks is not None:
+        mask_info = {**mask_info, "stage": "given"}
     report = {
         "source": str(options.source), "source_kind": info.kind, "source_frames": info.frame_count,
         "source_fps": info.fps, "source_size": [info.width, info.height],

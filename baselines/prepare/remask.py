@@ -40,7 +40,8 @@ from tqdm import tqdm
 
 from ..data.colmap_compat import image_cam_from_world
 from ..data.motion_masks import (MotionMaskOptions, clean_mask, depth_consistent_errors,
-                                 farthest_static_inverse_depth, masks_from_frame_errors)
+                                 farthest_static_inverse_depth, masks_from_frame_errors,
+                                 nearest_static_inverse_depth)
 from .errors import PrepareError
 from .masks import SNAP_STATIC_SCORE, pair_step, snap_to_edges
 from .parallax import measure_parallax
@@ -49,7 +50,9 @@ from .parallax import measure_parallax
 # cows, scooter-black); see docs/DATASETS.md for the table.
 THRESHOLD, MIN_ERROR_PX = 3.0, 0.7
 BOUND_RADIUS_FRACTION = 0.1  # neighbourhood of the sparse-point depth bound, fraction of the frame width
-BOUND_MARGIN = 0.5  # a static pixel may lie up to 1 / margin times farther than the farthest point nearby
+BOUND_MARGIN = 0.5
+PARALLAX_TOLERANCE = 0.0
+NEAR_MARGIN = 0.0  # > 0: a static pixel may lie at most 1 / margin times nearer than the nearest point nearby  # a static pixel may lie up to 1 / margin times farther than the farthest point nearby
 
 
 @dataclass
@@ -110,6 +113,7 @@ def posed_masks(images: Sequence[np.ndarray], Ks: Sequence[np.ndarray], viewmats
                 views: Sequence[SparseView] | None, frame_motion_px: float | None = None,
                 threshold: float = THRESHOLD, min_error_px: float = MIN_ERROR_PX,
                 bound_margin: float = BOUND_MARGIN, bound_radius_fraction: float = BOUND_RADIUS_FRACTION,
+                parallax_tolerance: float = PARALLAX_TOLERANCE, near_margin: float = NEAR_MARGIN,
                 snap: bool = True, progress: bool = True) -> list[np.ndarray]:
     """Motion masks ([H, W] bool, True = moving) of registered frames in time order.
 
@@ -129,10 +133,13 @@ def posed_masks(images: Sequence[np.ndarray], Ks: Sequence[np.ndarray], viewmats
 
     def frame_errors(a: int, partners: list[int], flows: list[np.ndarray], reliable: list[np.ndarray]):
         bar.update(1)
-        floor = (0.0 if views is None or not len(views[a].inverse_depth) else
-                 farthest_static_inverse_depth(views[a].xy, views[a].inverse_depth, shape, radius, bound_margin))
+        floor, ceiling = 0.0, np.inf
+        if views is not None and len(views[a].inverse_depth):
+            floor = farthest_static_inverse_depth(views[a].xy, views[a].inverse_depth, shape, radius, bound_margin)
+            if near_margin > 0:
+                ceiling = nearest_static_inverse_depth(views[a].xy, views[a].inverse_depth, shape, radius, near_margin)
         return depth_consistent_errors(flows, reliable, Ks[a], viewmats[a], [Ks[b] for b in partners],
-                                       [viewmats[b] for b in partners], floor)
+                                       [viewmats[b] for b in partners], floor, parallax_tolerance, ceiling)
 
     masks, report = masks_from_frame_errors(images, frame_errors, options, keep_scores=True)
     bar.close()

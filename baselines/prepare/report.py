@@ -2,7 +2,7 @@
 
 The report says what was extracted, which frames were registered, which were dropped and why,
 the mean reprojection error (pixels), the number of 3D points, the shared camera, the parallax
-check, the masks' coverage, which stages were reused, and the options used.
+check, which masks the dataset got ("stage": posed, pre-sfm or given) and their coverage, which stages were reused, and the options used.
 """
 from __future__ import annotations
 
@@ -39,6 +39,17 @@ def _mapper_line(mapper: dict | None) -> str:
     return "; ".join(parts) if mapper.get("global") is not None else f"{mapper['used']} ({parts[1]})"
 
 
+def _masks_line(masks: dict) -> str:
+    """Which masks the dataset got, and the pre-SfM ones' coverage when the posed stage replaced them."""
+    line = f"{masks['source']}"
+    if masks.get("stage") == "posed":
+        line += " (re-estimated with the cameras"
+        if masks.get("pre_sfm"):
+            line += f"; pre-SfM masks {masks['pre_sfm']['mean_coverage']:.1%}"
+        line += ")"
+    return f"{line}, mean coverage {masks['mean_coverage']:.1%}"
+
+
 def summary_lines(report: dict) -> list[str]:
     """Human summary of a report (printed at the end of a run)."""
     lines = [f"prepare: {report['registered_frames']}/{report['extracted_frames']} frames registered, "
@@ -46,7 +57,7 @@ def summary_lines(report: dict) -> list[str]:
              f"{report['points']} points, camera {report['camera']['model']} "
              f"f={report['camera']['params'][0]:.1f} px ({report['camera']['width']}x{report['camera']['height']})",
              f"  mapper: {_mapper_line(report.get('mapper'))}",
-             f"  masks: {report['masks']['source']} (mean coverage {report['masks']['mean_coverage']:.1%})"]
+             f"  masks: {_masks_line(report['masks'])}"]
     dropped = report["dropped"]
     if dropped:
         lines.append(f"  dropped {len(dropped)} frame(s): " + ", ".join(f"{d['frame']} ({d['reason']})" for d in dropped[:8])
