@@ -7,8 +7,9 @@ For each DAVIS clip of `benchmarks/real_captures.py` (the `davis_*` captures) no
 under `--data`, runs the capture's setup (extract frames + annotations at the pinned commit,
 prepare with the capture's flags, ground-truth masks), one clip at a time; then prints one
 Markdown table: frames registered / extracted, mean reprojection error, points, the mapper kept,
-prepare's wall seconds, and prepare's AUTO motion masks (`.prepare/masks/`, every extracted
-frame, what ReFlow trains with) against the DAVIS annotations (binarised: any object > 0):
+prepare's wall seconds, and prepare's AUTO motion masks (what ReFlow trains with: the dataset's
+`motion_masks/` when the report says they are the post-mapping ones, `"stage": "posed"`, else the
+pre-SfM `.prepare/masks/` of every extracted frame) against the DAVIS annotations (binarised: any object > 0):
 IoU, precision and recall pooled over the clip's frames. A clip prepare cannot register is a
 row with the error. The table and the raw figures also go to `--data/prepare_davis.{md,json}`.
 """
@@ -58,8 +59,12 @@ def mask_scores(masks: list[np.ndarray], truth: list[np.ndarray]) -> dict[str, f
 
 
 def auto_mask_scores(capture: Capture, data_root: Path) -> dict[str, float] | None:
-    """Scores of prepare's auto masks (every extracted frame) against the annotations, or None."""
+    """Scores of prepare's auto masks against the annotations, or None: the dataset's posed masks
+    (registered frames) when it has them, else the pre-SfM ones (every extracted frame)."""
     mask_dir = dataset_dir(capture, data_root) / ".prepare" / "masks"
+    report_path = dataset_dir(capture, data_root) / "prepare_report.json"
+    if report_path.is_file() and json.loads(report_path.read_text()).get("masks", {}).get("stage") == "posed":
+        mask_dir = dataset_dir(capture, data_root) / "motion_masks"
     annotations = sorted(truth_dir(capture, data_root).glob("*.png"))
     if not mask_dir.is_dir() or not annotations:
         return None

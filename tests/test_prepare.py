@@ -96,6 +96,57 @@ def test_auto_masks_cover_the_moving_object(clip, prepared):
     assert sum(int((f & t).sum()) for f, t in zip(found, true)) / sum(int(t.sum()) for t in true) > 0.2
 
 
+def _masks_iou(folder: Path, true_dir: Path) -> float:
+    found = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) > 0 for p in sorted(folder.glob("*.png"))]
+    true = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) > 0 for p in sorted(true_dir.glob("*.png"))]
+    assert len(found) == len(true) == FRAMES
+    return sum(int((f & t).sum()) for f, t in zip(found, true)) / sum(int((f | t).sum()) for f, t in zip(found, true))
+
+
+def test_dataset_gets_the_posed_masks(clip, prepared):
+    """The dataset's motion_masks/ are the post-mapping masks (re-estimated with the registered
+    cameras and sparse points), closer to the true masks than the pre-SfM ones, which stay in
+    .prepare/masks for the keypoint masking. Measured on 2026-11-27: IoU PRE -> POST."""
+    dataset = prepared[0]
+    report = json.loads((dataset / "prepare_report.json").read_text())
+    masks = report["masks"]
+    assert masks["source"] == "auto" and masks["stage"] == "posed" and masks["pre_sfm"]["stage"] == "pre-sfm"
+    assert len(masks["coverage"]) == FRAMES and 0 < masks["mean_coverage"] < 0.5
+    assert "re-estimated with the cameras" in prepared[1].stdout
+    posed = _masks_iou(dataset / "motion_masks", clip[0] / "motion_masks")
+    pre_sfm = _masks_iou(dataset / ".prepare" / "masks", clip[0] / "motion_masks")
+    assert posed > pre_sfm + 0.05, (posed, pre_sfm)
+
+
+def test_remask_writes_a_copy_or_only_the_masks(prepared, tmp_path):
+    """`python -m baselines.prepare.remask`: with -o a new dataset folder (the given one untouched),
+    without it only motion_masks/ and the report's "masks" entry change; bad input: one line."""
+    source = tmp_path / "dataset"
+    shutil.copytree(prepared[0], source, ignore=shutil.ignore_patterns(".prepare"))
+    (source / "motion_masks" / "00000.png").write_bytes(b"stale")  # must be replaced in place
+    before = {p.relative_to(source): p.read_bytes() for p in source.rglob("*") if p.is_file()}
+    copy = tmp_path / "copy"
+    proc = subprocess.run([sys.executable, "-m", "baselines.prepare.remask", str(source), "-o", str(copy), "--quiet"],
+                          cwd=REPO_ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert {p.relative_to(source): p.read_bytes() for p in source.rglob("*") if p.is_file()} == before
+    assert len(list((copy / "motion_masks").glob("*.png"))) == FRAMES and (copy / "sparse" / "0").is_dir()
+    assert json.loads((copy / "prepare_report.json").read_text())["masks"]["stage"] == "posed"
+    assert load_scene(copy).train_cameras[0].mask is not None
+    proc = subprocess.run([sys.executable, "-m", "baselines.prepare.remask", str(source), "--quiet"],
+                          cwd=REPO_ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    after = {p.relative_to(source): p.read_bytes() for p in source.rglob("*") if p.is_file()}
+    changed = {str(k) for k in after if after[k] != before.get(k)}
+    assert changed and all(k.startswith("motion_masks/") or k == "prepare_report.json" for k in changed), changed
+    assert cv2.imread(str(source / "motion_masks" / "00000.png"), cv2.IMREAD_GRAYSCALE) is not None
+    for bad, expected in ((tmp_path / "nowhere", "no images/ folder"), (copy, None)):
+        args = [str(source), "-o", str(copy)] if expected is None else [str(bad)]
+        proc = subprocess.run([sys.executable, "-m", "baselines.prepare.remask", *args, "--quiet"],
+                              cwd=REPO_ROOT, capture_output=True, text=True)
+        assert_one_line_error(proc, expected or "exists and is not empty")
+
+
 def test_no_keypoints_on_masked_pixels(prepared):
     """Auto masks reach pycolmap: no SIFT keypoint lies where a COLMAP mask says ignore."""
     import pycolmap
@@ -132,9 +183,10 @@ def test_rerun_reuses_every_stage(clip, prepared):
     again = run_prepare(clip[1], dataset, "--size", str(WIDTH), "--masks", "auto", "--quiet")
     assert again.returncode == 0, again.stderr
     report = json.loads((dataset / "prepare_report.json").read_text())
-    assert report["reused_stages"] == ["frames", "masks", "features", "matches", "mapping"]
+    assert report["reused_stages"] == ["frames", "masks", "features", "matches", "mapping", "posed_masks"]
     assert report["registered"] == before["registered"] and report["points"] == before["points"]
-    assert "reused: frames, masks, features, matches, mapping" in again.stdout
+    assert report["masks"]["coverage"] == before["masks"]["coverage"]
+    assert "reused: frames, masks, features, matches, mapping, posed_masks" in again.stdout
 
 
 def test_training_runs_on_the_prepared_dataset(prepared, tmp_path):

@@ -172,26 +172,31 @@ def depth_consistent_errors(flows: Sequence[np.ndarray], reliable: Sequence[np.n
         near.append(A)
         shift.append(B)
 
-    def errors_at(inverse_depth: np.ndarray) -> np.ndarray:
-        """[pairs, H, W] pixels between each target and the point at `inverse_depth` [H, W]."""
+    def errors_at(inverse_depth: np.ndarray, tolerant: np.ndarray | None = None) -> np.ndarray:
+        """[pairs, H, W] pixels between each target and the point at `inverse_depth` [H, W]; where
+        `tolerant` ([H, W] bool), divided by 1 + parallax_tolerance * the point's parallax."""
         out = []
         for target, A, B in zip(targets, near, shift):
             point = A + inverse_depth[..., None] * B
             ahead = point[..., 2] > 1e-9
             projected = point[..., :2] / np.where(ahead, point[..., 2], 1.0)[..., None]
             error = np.linalg.norm(target - projected, axis=-1)
-            if parallax_tolerance > 0:  # near static surfaces: pose and flow errors grow with the parallax
+            if parallax_tolerance > 0 and tolerant is not None:
                 far = A[..., :2] / np.clip(A[..., 2:3], 1e-9, None)
-                error = error / (1.0 + parallax_tolerance * np.linalg.norm(projected - far, axis=-1))
+                error = np.where(tolerant, error / (1.0 + parallax_tolerance * np.linalg.norm(projected - far, axis=-1)),
+                                 error)
             out.append(np.where(ahead, error, np.inf))
         return np.stack(out)
 
     votes = np.stack([np.asarray(ok, bool) for ok in reliable])  # [pairs, H, W]
     best_cost = np.full((h, w), np.inf)
     best = errors_at(floor)  # no reliable vote: the bound itself
-    for candidate in fitted:
-        candidate = np.clip(np.nan_to_num(candidate, nan=0.0, posinf=0.0, neginf=0.0), floor, ceiling)
-        errors = errors_at(candidate)
+    for fit in fitted:
+        fit = np.nan_to_num(fit, nan=0.0, posinf=0.0, neginf=0.0)
+        candidate = np.clip(fit, floor, ceiling)
+        # the tolerance is for static surfaces near the camera, whose residual grows with their
+        # parallax (pose and calibration errors); a pixel that needed the bound gets none
+        errors = errors_at(candidate, candidate == fit)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             cost = np.nanmedian(np.where(votes, errors, np.nan), axis=0)

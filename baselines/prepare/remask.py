@@ -50,8 +50,8 @@ from .parallax import measure_parallax
 # cows, scooter-black); see docs/DATASETS.md for the table.
 THRESHOLD, MIN_ERROR_PX = 3.0, 0.7
 BOUND_RADIUS_FRACTION = 0.1  # neighbourhood of the sparse-point depth bound, fraction of the frame width
-BOUND_MARGIN = 0.5
-PARALLAX_TOLERANCE = 0.0
+BOUND_MARGIN = 0.8
+PARALLAX_TOLERANCE = 0.2
 NEAR_MARGIN = 0.0  # > 0: a static pixel may lie at most 1 / margin times nearer than the nearest point nearby  # a static pixel may lie up to 1 / margin times farther than the farthest point nearby
 
 
