@@ -28,6 +28,9 @@ uncovers over those frames.
 
 Known blind spot: motion ALONG the epipolar line is invisible to the depth-free test (an object
 moving parallel to the camera's translation); `report.epipolar_only` says which test ran.
+`depth_consistent_errors` (used by `baselines.prepare.remask` after SfM, through
+`masks_from_frame_errors`) closes most of it without a dense depth: one depth per pixel must
+explain all of a frame's pairs, within bounds taken from the sparse SfM points.
 Measured on the synthetic suite (128x96, full sequences, IoU with the true masks / false-positive
 fraction of the image): balloon 0.55 / 0.0002 without depth, 0.91 / 0.001 with it; truck 0.003
 without depth (it moves along the rig's baseline) and 0.90 / 0.014 with it; skating 0.01 and
@@ -136,16 +139,22 @@ def depth_consistent_errors(flows: Sequence[np.ndarray], reliable: Sequence[np.n
     A static pixel has one depth: each pair's flow gives it an inverse depth w_k (its position
     along the epipolar line), and one w explains all pairs. A pixel moving along the epipolar
     lines fits a line position per pair, but no single depth unless its motion mimics parallax
-    exactly; and an object the camera follows (flow near zero while the background streams past)
-    fits only a depth farther than the background around it. So w is bounded below by
-    `min_inverse_depth` ([H, W] or a scalar, 1 / the farthest plausible static depth, e.g.
-    `farthest_static_inverse_depth` of the sparse points) and chosen per pixel among the pairs'
-    w_k (clamped to the bound) as the one with the smallest median error over the reliable pairs.
+    (constant velocity parallel to the camera's); then its apparent depth is wrong instead: an
+    object the camera follows (flow near zero while the background streams past) or one moving
+    the camera's way fits only a depth beyond the static scene around it. So w is bounded to
+    [`min_inverse_depth`, `max_inverse_depth`] ([H, W] or scalars, e.g.
+    `farthest_static_inverse_depth` / `nearest_static_inverse_depth` of the sparse points) and
+    chosen per pixel among the pairs' w_k (clamped to the bounds) as the one with the smallest
+    median error over the reliable pairs.
 
     Args:
         flows: per partner [H, W, 2] flow a -> b_k; reliable: per partner [H, W] bool (pixels
             whose flow is trusted; the others do not vote for w but still get an error).
         K_a, viewmat_a: [3, 3] intrinsics and [4, 4] world->camera of view a; Ks_b, viewmats_b: per partner.
+        parallax_tolerance: where w needed no clamping, the error is divided by
+            1 + parallax_tolerance * (the point's parallax in pixels, its distance from the point at
+            infinity): near static surfaces show residuals that grow with their parallax (pose and
+            calibration errors); 0 = plain pixels.
     Returns:
         one [H, W] float32 error per partner (inf where the chosen point is behind camera b_k).
     """
