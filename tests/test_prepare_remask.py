@@ -80,6 +80,19 @@ def test_the_depth_bound_catches_a_subject_the_camera_follows():
     wall = np.ones((H, W), bool)
     wall[patch] = False
     assert max(float(e[wall].max()) for e in bounded) < 1e-3
+    # a fitted F / H that explains everything (zero error) excuses pixels whose depth fits the
+    # bound, never one that needed the bound
+    excused = depth_consistent_errors(*args, min_inverse_depth=floor, fallback_errors=[np.zeros((H, W))] * 2)
+    assert np.allclose(excused[0][patch], 1.6, atol=1e-3)
+    inconsistent = [f.copy() for f in flows]
+    for flow in inconsistent:
+        flow[patch] = (-2.0, 0.0)  # on the lines, no single depth (see above), within the bound
+    inconsistent_args = (inconsistent, *args[1:])
+    loose = farthest_static_inverse_depth(xy, np.full(len(xy), 0.25), (H, W), radius_px=40, margin=0.4)  # 0.1
+    errors = depth_consistent_errors(*inconsistent_args, min_inverse_depth=loose)
+    assert float((errors[0] + errors[1])[patch].min()) > 1.0 - 1e-3
+    assert max(float(e[patch].max()) for e in depth_consistent_errors(
+        *inconsistent_args, min_inverse_depth=loose, fallback_errors=[np.zeros((H, W))] * 2)) == 0
 
 
 def test_sparse_depth_bounds():

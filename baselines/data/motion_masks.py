@@ -132,7 +132,8 @@ def depth_consistent_errors(flows: Sequence[np.ndarray], reliable: Sequence[np.n
                             viewmat_a: np.ndarray, Ks_b: Sequence[np.ndarray], viewmats_b: Sequence[np.ndarray],
                             min_inverse_depth: np.ndarray | float = 0.0,
                             parallax_tolerance: float = 0.0,
-                            max_inverse_depth: np.ndarray | float = np.inf) -> list[np.ndarray]:
+                            max_inverse_depth: np.ndarray | float = np.inf,
+                            fallback_errors: Sequence[np.ndarray] | None = None) -> list[np.ndarray]:
     """Per pair [H, W] pixels: how far q + flow_k(q) lies from where ONE static point on q's ray,
     shared by every pair, would land in view b_k.
 
@@ -155,6 +156,11 @@ def depth_consistent_errors(flows: Sequence[np.ndarray], reliable: Sequence[np.n
             1 + parallax_tolerance * (the point's parallax in pixels, its distance from the point at
             infinity): near static surfaces show residuals that grow with their parallax (pose and
             calibration errors); 0 = plain pixels.
+        fallback_errors: optional per partner [H, W] error of another static model (e.g. the F / H
+            fitted to the flow, `baselines.prepare.masks.uncalibrated_error`); where w needed no
+            clamping the smaller of the two counts: a static surface that the cameras' small pose
+            or focal errors misplace but a fitted F explains is not flagged, while a pixel that
+            violates the depth bound keeps its error.
     Returns:
         one [H, W] float32 error per partner (inf where the chosen point is behind camera b_k).
     """
@@ -195,6 +201,8 @@ def depth_consistent_errors(flows: Sequence[np.ndarray], reliable: Sequence[np.n
                 error = np.where(tolerant, error / (1.0 + parallax_tolerance * np.linalg.norm(projected - far, axis=-1)),
                                  error)
             out.append(np.where(ahead, error, np.inf))
+        if fallback_errors is not None and tolerant is not None:
+            out = [np.where(tolerant, np.minimum(error, other), error) for error, other in zip(out, fallback_errors)]
         return np.stack(out)
 
     votes = np.stack([np.asarray(ok, bool) for ok in reliable])  # [pairs, H, W]

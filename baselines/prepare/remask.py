@@ -43,7 +43,7 @@ from ..data.motion_masks import (MotionMaskOptions, clean_mask, depth_consistent
                                  farthest_static_inverse_depth, masks_from_frame_errors,
                                  nearest_static_inverse_depth)
 from .errors import PrepareError
-from .masks import SNAP_STATIC_SCORE, pair_step, snap_to_edges
+from .masks import SNAP_STATIC_SCORE, pair_step, snap_to_edges, uncalibrated_error
 from .parallax import measure_parallax
 
 # Constants, tuning-clip mean IoU of benchmarks/mask_quality.py --posed (dog, libby, goat, cows,
@@ -64,6 +64,11 @@ PARALLAX_TOLERANCE = 0.05
 # Off: it helped in no measured case (synthetic box along the epipolar lines, bound margin 0.5:
 # 0.058 off, 0.068 at 0.5, 0.044 at 0.33; its apparent depth is beyond the room, not in front).
 NEAR_MARGIN = 0.0
+# True: where a pixel's depth fits the bounds, the F / H fitted to the flow (the pre-SfM test) may
+# excuse it (`depth_consistent_errors(fallback_errors=...)`). Off: tuning mean 0.565 with it
+# (goat 0.21 -> 0.42, whose near rocks the cameras misplace by 6-25 px, but dog 0.75 -> 0.66,
+# cows 0.85 -> 0.61: parts of a walking animal that a fitted F explains).
+FITTED_FALLBACK = False
 
 
 @dataclass
@@ -125,6 +130,7 @@ def posed_masks(images: Sequence[np.ndarray], Ks: Sequence[np.ndarray], viewmats
                 threshold: float = THRESHOLD, min_error_px: float = MIN_ERROR_PX,
                 bound_margin: float = BOUND_MARGIN, bound_radius_fraction: float = BOUND_RADIUS_FRACTION,
                 parallax_tolerance: float = PARALLAX_TOLERANCE, near_margin: float = NEAR_MARGIN,
+                fitted_fallback: bool = FITTED_FALLBACK,
                 snap: bool = True, progress: bool = True) -> list[np.ndarray]:
     """Motion masks ([H, W] bool, True = moving) of registered frames in time order.
 
@@ -149,8 +155,9 @@ def posed_masks(images: Sequence[np.ndarray], Ks: Sequence[np.ndarray], viewmats
             floor = farthest_static_inverse_depth(views[a].xy, views[a].inverse_depth, shape, radius, bound_margin)
             if near_margin > 0:
                 ceiling = nearest_static_inverse_depth(views[a].xy, views[a].inverse_depth, shape, radius, near_margin)
+        fallback = [uncalibrated_error(flow) for flow in flows] if fitted_fallback else None
         return depth_consistent_errors(flows, reliable, Ks[a], viewmats[a], [Ks[b] for b in partners],
-                                       [viewmats[b] for b in partners], floor, parallax_tolerance, ceiling)
+                                       [viewmats[b] for b in partners], floor, parallax_tolerance, ceiling, fallback)
 
     masks, report = masks_from_frame_errors(images, frame_errors, options, keep_scores=True)
     bar.close()
