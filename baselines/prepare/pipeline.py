@@ -23,7 +23,6 @@ from .errors import PrepareError
 from .frames import extract_frames, probe_source
 from .masks import colmap_mask, motion_masks
 from .parallax import explain_failure, measure_parallax, require_camera_motion
-from .remask import mask_entry, posed_masks, read_posed_dataset, write_masks
 from .report import model_statistics, summary_lines, write_report
 from .sfm import (CAMERA_MODELS, SfmOptions, better_model, extract_features, global_map_frames, map_frames,
                   match_frames, model_quality, read_model)
@@ -149,6 +148,10 @@ def _posed_masks_stage(options: PrepareOptions, cache: StageCache, key: str, out
                        frame_motion_px: float | None, work: Path) -> dict:
     """Re-estimate the written dataset's masks with its cameras (`remask.py`), reused when done;
     writes `out/motion_masks/` and returns the report's "masks" entry."""
+    # imported here: `python -m baselines.prepare.remask` must not find its module already
+    # imported by the package (runpy warns), and the package imports this module
+    from .remask import mask_entry, posed_masks, read_posed_dataset, write_masks
+
     folder = work / "posed_masks"
     if cache.done("posed_masks", key) and folder.is_dir():
         names = sorted(p.name for p in (out / "images").iterdir())
