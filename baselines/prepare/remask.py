@@ -65,9 +65,9 @@ PARALLAX_TOLERANCE = 0.05
 # 0.058 off, 0.068 at 0.5, 0.044 at 0.33; its apparent depth is beyond the room, not in front).
 NEAR_MARGIN = 0.0
 # True: where a pixel's depth fits the bounds, the F / H fitted to the flow (the pre-SfM test) may
-# excuse it (`depth_consistent_errors(fallback_errors=...)`). Off: tuning mean 0.565 with it
-# (goat 0.21 -> 0.42, whose near rocks the cameras misplace by 6-25 px, but dog 0.75 -> 0.66,
-# cows 0.85 -> 0.61: parts of a walking animal that a fitted F explains).
+# excuse it (`depth_consistent_errors(fallback_errors=...)`). Off: tuning mean 0.593 -> 0.556
+# with it (goat 0.21 -> 0.41, whose near rocks the cameras misplace by 6-25 px, but dog 0.75 ->
+# 0.63, cows 0.85 -> 0.60: parts of a walking animal that a fitted F explains).
 FITTED_FALLBACK = False
 
 
