@@ -7,6 +7,7 @@ matching by source index) runs for real.
 """
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
@@ -143,3 +144,23 @@ def test_mask_scores_pool_pixels_over_frames():
     scores = prepare_davis.mask_scores(masks, truth)
     assert scores["precision"] == pytest.approx(4 / 20) and scores["recall"] == pytest.approx(4 / 8)
     assert scores["IoU"] == pytest.approx(4 / 24)
+
+
+def test_davis_table_scores_the_masks_the_dataset_trains_with(tmp_path):
+    """`prepare_davis.auto_mask_scores`: the pre-SfM `.prepare/masks/` of a dataset prepared before
+    the posed stage; the dataset's `motion_masks/` once its report says `"stage": "posed"`."""
+    capture = prepare_davis.davis_captures("dog")[0]
+    dataset, truth = real_captures.dataset_dir(capture, tmp_path), real_captures.truth_dir(capture, tmp_path)
+    for folder in (dataset / ".prepare" / "masks", dataset / "motion_masks", truth):
+        folder.mkdir(parents=True)
+    label = np.zeros((H, W), np.uint8)
+    label[:, :8] = 1  # the left half moves
+    left, right = np.where(label > 0, 255, 0).astype(np.uint8), np.where(label > 0, 0, 255).astype(np.uint8)
+    for k in range(2):
+        cv2.imwrite(str(truth / f"{k:05d}.png"), label)
+        cv2.imwrite(str(dataset / ".prepare" / "masks" / f"{k:05d}.png"), right)  # wrong half
+        cv2.imwrite(str(dataset / "motion_masks" / f"{k:05d}.png"), left)  # right half
+    (dataset / "prepare_report.json").write_text(json.dumps({"masks": {"source": "auto", "mean_coverage": 0.5}}))
+    assert prepare_davis.auto_mask_scores(capture, tmp_path)["IoU"] == 0.0
+    (dataset / "prepare_report.json").write_text(json.dumps({"masks": {"source": "auto", "stage": "posed"}}))
+    assert prepare_davis.auto_mask_scores(capture, tmp_path)["IoU"] == 1.0
