@@ -39,9 +39,10 @@ def clip(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def prepared(clip, tmp_path_factory):
-    """(dataset folder, completed process) of prepare on the clip, masks auto."""
+    """(dataset folder, completed process) of prepare on the clip, masks posed (auto, then
+    re-estimated with the cameras: every stage runs)."""
     dataset = tmp_path_factory.mktemp("prepared") / "clip"
-    return dataset, run_prepare(clip[1], dataset, "--size", str(WIDTH), "--masks", "auto", "--quiet")
+    return dataset, run_prepare(clip[1], dataset, "--size", str(WIDTH), "--masks", "posed", "--quiet")
 
 
 def truth(scene_dir: Path) -> list[dict]:
@@ -104,7 +105,7 @@ def _masks_iou(folder: Path, true_dir: Path) -> float:
 
 
 def test_dataset_gets_the_posed_masks(clip, prepared):
-    """The dataset's motion_masks/ are the post-mapping masks (re-estimated with the registered
+    """With --masks posed the dataset's motion_masks/ are the post-mapping masks (re-estimated with the registered
     cameras and sparse points), closer to the true masks than the pre-SfM ones, which stay in
     .prepare/masks for the keypoint masking. Measured on 2026-11-27: IoU 0.70 -> 0.73 (on the box
     moving along the epipolar lines, tests/test_prepare_remask.py, 0.00 -> 0.86)."""
@@ -117,6 +118,22 @@ def test_dataset_gets_the_posed_masks(clip, prepared):
     posed = _masks_iou(dataset / "motion_masks", clip[0] / "motion_masks")
     pre_sfm = _masks_iou(dataset / ".prepare" / "masks", clip[0] / "motion_masks")
     assert posed > max(pre_sfm, 0.65), (posed, pre_sfm)
+
+
+def test_default_auto_masks_are_the_pre_sfm_ones(clip, prepared, tmp_path):
+    """--masks auto (the default) writes the pre-SfM masks and skips the posed stage: a rerun of
+    the posed dataset with auto reuses every earlier stage and swaps the masks back."""
+    dataset = tmp_path / "clip"
+    shutil.copytree(prepared[0], dataset)
+    proc = run_prepare(clip[1], dataset, "--size", str(WIDTH), "--masks", "auto", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads((dataset / "prepare_report.json").read_text())
+    assert report["reused_stages"] == ["frames", "masks", "features", "matches", "mapping"]
+    assert report["masks"]["stage"] == "pre-sfm"
+    assert len(list((dataset / "motion_masks").glob("*.png"))) == FRAMES
+    for written in sorted((dataset / "motion_masks").glob("*.png")):
+        pre_sfm = cv2.imread(str(dataset / ".prepare" / "masks" / written.name), cv2.IMREAD_GRAYSCALE) > 0
+        assert np.array_equal(cv2.imread(str(written), cv2.IMREAD_GRAYSCALE) > 0, pre_sfm), written.name
 
 
 def test_remask_writes_a_copy_or_only_the_masks(prepared, tmp_path):
@@ -181,7 +198,7 @@ def test_dataset_loads_with_times_and_masks(prepared):
 def test_rerun_reuses_every_stage(clip, prepared):
     dataset, first = prepared
     before = json.loads((dataset / "prepare_report.json").read_text())
-    again = run_prepare(clip[1], dataset, "--size", str(WIDTH), "--masks", "auto", "--quiet")
+    again = run_prepare(clip[1], dataset, "--size", str(WIDTH), "--masks", "posed", "--quiet")
     assert again.returncode == 0, again.stderr
     report = json.loads((dataset / "prepare_report.json").read_text())
     assert report["reused_stages"] == ["frames", "masks", "features", "matches", "mapping", "posed_masks"]

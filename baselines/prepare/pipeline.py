@@ -2,9 +2,10 @@
 
 Stages (each skipped when its key, see `cache.py`, matches a finished run in `<out>/.prepare/`):
 frames -> parallax check -> masks -> features -> matching -> mapping -> posed masks; then the
-dataset and the report are written. With `--masks auto` the pre-SfM masks keep movers out of
-feature extraction and the dataset's `motion_masks/` gets the posed masks (`remask.py`:
-re-estimated with the registered cameras); a folder of masks is written as given. Checks that need no decoding (missing input, empty or mixed-size folder,
+dataset and the report are written. The pre-SfM masks (`--masks auto`, the default) keep movers
+out of feature extraction and are the dataset's `motion_masks/`; with `--masks posed` the
+dataset gets the posed masks instead (`remask.py`: re-estimated with the registered cameras); a
+folder of masks is written as given. Checks that need no decoding (missing input, empty or mixed-size folder,
 unreadable video, bad options, output folder owned by something else) run first.
 """
 from __future__ import annotations
@@ -39,6 +40,12 @@ GLOBAL_MODELS = "global_models"
 # incremental mapping registering fewer than this fraction of the frames calls the global mapper:
 # a casual clip whose incremental model split in two (a fast pan, a blurred stretch) is the case
 GLOBAL_FALLBACK_FRACTION = 0.8
+# --masks: "auto" writes the pre-SfM masks; "posed" re-estimates them after mapping with the
+# registered cameras (remask.py). Not the default: on the six held-out DAVIS clips the posed
+# masks' IoU is 0.33 against 0.31 and their precision lower (goat 0.76 -> 0.22, motocross-jump
+# 0.39 -> 0.19; docs/DATASETS.md), and false positives are what seed ReFlow's dynamic points on
+# the background (docs/REAL_CAPTURES.md, motocross-jump); no ReFlow run has measured them yet.
+MASK_MODES = ("auto", "posed", "none")
 
 
 @dataclass
@@ -63,8 +70,8 @@ class PrepareOptions:
             raise PrepareError(f"--size {self.width}: must be at least 32 pixels")
         if self.sfm.camera_model not in CAMERA_MODELS:
             raise PrepareError(f"--camera-model {self.sfm.camera_model}: expected one of {', '.join(CAMERA_MODELS)}")
-        if self.masks not in ("auto", "none") and not Path(self.masks).is_dir():
-            raise PrepareError(f"--masks {self.masks}: expected auto, none or a folder of mask images")
+        if self.masks not in MASK_MODES and not Path(self.masks).is_dir():
+            raise PrepareError(f"--masks {self.masks}: expected auto, posed, none or a folder of mask images")
         output = Path(self.output)
         if output.exists() and (not output.is_dir() or (any(output.iterdir()) and not (output / WORK_DIR).is_dir())):
             raise PrepareError(f"output {output} exists and was not written by prepare",
@@ -75,9 +82,10 @@ def _read_frames(frame_dir: Path, names: list[str]) -> list[np.ndarray]:
     return [cv2.imread(str(frame_dir / n), cv2.IMREAD_COLOR) for n in names]
 
 
-def _masks_stage(options: PrepareOptions, cache: StageCache, key: str, names: list[str],
+def _masks_stage(options: PrepareOptions, mode: str, cache: StageCache, key: str, names: list[str],
                  images: list[np.ndarray], frame_motion_px: float | None, work: Path) -> tuple[dict[str, np.ndarray] | None, dict, Path | None]:
-    """(masks by frame name or None, mask info, COLMAP mask folder or None)."""
+    """(masks by frame name or None, mask info, COLMAP mask folder or None) for `mode` "auto",
+    "none" or a folder (`motion_masks`)."""
     mask_dir, colmap_dir = work / "masks", work / "colmap_masks"
     if cache.done("masks", key):
         info = cache.extra("masks")
@@ -87,7 +95,7 @@ def _masks_stage(options: PrepareOptions, cache: StageCache, key: str, names: li
         return masks, info, colmap_dir
     for folder in (mask_dir, colmap_dir):
         shutil.rmtree(folder, ignore_errors=True)
-    found, info = motion_masks(images, options.masks, frame_motion_px, options.progress)
+    found, info = motion_masks(images, mode, frame_motion_px, options.progress)
     masks = None if found is None else dict(zip(names, found))
     if masks is not None:
         mask_dir.mkdir(parents=True)
@@ -211,9 +219,11 @@ def prepare(options: PrepareOptions) -> dict:
     parallax = measure_parallax(images)
     require_camera_motion(parallax)
 
-    masks_source = options.masks if options.masks in ("auto", "none") else file_identity(Path(options.masks))
+    # "posed" starts from the "auto" masks (they keep movers out of SfM): the same cached stage
+    pre_sfm_mode = "auto" if options.masks == "posed" else options.masks
+    masks_source = pre_sfm_mode if pre_sfm_mode in MASK_MODES else file_identity(Path(pre_sfm_mode))
     masks_key = cache.key(frames_key, masks_source)
-    masks, mask_info, colmap_masks = _masks_stage(options, cache, masks_key, names, images,
+    masks, mask_info, colmap_masks = _masks_stage(options, pre_sfm_mode, cache, masks_key, names, images,
                                                    parallax.frame_motion_px, work)
     model, verified, mapper = _sfm_stages(options, cache, masks_key, names, colmap_masks, work)
     registered = [] if model is None else sorted(image.name for image in model.images.values() if image.has_pose)
@@ -224,12 +234,12 @@ def prepare(options: PrepareOptions) -> dict:
     scale = rescale(model)
     times = frame_times(names)
     write_dataset(out, model, frame_dir, registered, times, masks)
-    if options.masks == "auto":
+    if options.masks == "posed":
         posed_key = cache.key(masks_key, mapper, registered, "posed_masks")
         mask_info = _posed_masks_stage(options, cache, posed_key, out, {**mask_info, "stage": "pre-sfm"},
                                        parallax.frame_motion_px, work)
     elif masks is not None:
-        mask_info = {**mask_info, "stage": "given"}
+        mask_info = {**mask_info, "stage": "pre-sfm" if pre_sfm_mode == "auto" else "given"}
     report = {
         "source": str(options.source), "source_kind": info.kind, "source_frames": info.frame_count,
         "source_fps": info.fps, "source_size": [info.width, info.height],
