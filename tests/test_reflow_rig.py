@@ -6,6 +6,7 @@ cameras: 26-68). Its ground-truth masks and depth score what the pairing by came
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -140,3 +141,18 @@ def test_rig_canonical_space_is_triangulated_without_the_time_ordered_alignment(
     assert by_time.report["alignment"]["mode"] == "coarse_to_fine"
     # measured 0.027 by camera, 0.092 by time
     assert depth_error(space) < 0.04 and depth_error(by_time) > 1.5 * depth_error(space)
+
+
+def test_rig_pairs_benchmark_reports_both_pairings(rig_path, tmp_path, capsys):
+    """benchmarks/rig_pairs.py on the simulator's rig (dataset points: its triangulated cloud)."""
+    from benchmarks.rig_pairs import main
+
+    out = tmp_path / "pairs.json"
+    assert main(["-s", str(rig_path), "-r", "1", "--frames", "4", "--json", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["wide rig"] and report["poses"] == 4
+    assert set(report["masks"]) == {"time order", "by camera"}
+    guided, by_time = report["triangulation"]["nearest rig cameras, guided"], report["triangulation"]["time neighbours, from zero"]
+    assert guided["pairs"] == 8 and guided["confident"] > by_time["confident"]
+    assert "wide rig True" in capsys.readouterr().out
+    assert main(["-s", str(tmp_path / "missing")]) == 2
