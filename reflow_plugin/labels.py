@@ -12,8 +12,8 @@ On a wide rig read monocularly (reflow_plugin.rig: camera poses recur, consecuti
 of degrees apart) each rig camera's frames are paired among themselves, in time order: time
 neighbours are other rig cameras, where DIS fails, while between two frames of one fixed camera
 the static scene's flow is zero. CMU Panoptic basketball at -r 4 against its person masks
-(seg/): time order flagged 1.4% of the pixels, IoU 0.01; per camera 7.6% (truth 9.1%), IoU 0.41,
-precision 0.68, recall 0.54.
+(seg/, pixels pooled; benchmarks/rig_pairs.py): time order flagged 1.4% of the pixels, IoU 0.02;
+per camera 7.6% (truth 9.1%), IoU 0.42, precision 0.65, recall 0.54.
 
 Disparity alignment: monocular disparity (NVIDIA's `disp/*.npy`) has an unknown scale and shift
 per frame, fitted in inverse depth to the static points that project into the frame (outside its
