@@ -146,11 +146,11 @@ class ReFlowParams:
                                              "in the loss over all pixels; static pixels are left to camera flow "
                                              "matching; all pixels without separation) or all (the paper)", choices=FULL_FLOW_REGIONS)
     full_flow_min_share: float = param(0.9, "ours, with --full_flow_region dynamic: a pixel enters full flow "
-                                             "matching when its rendered dynamic share is at least this times "
-                                             "the view's largest share, and at least 0.5 (mixed pixels at the "
-                                             "object's edge blend static Gaussians in; 0.5 before: -0.5 dB on the "
-                                             "suite, all of it a band around the moving objects; relative to the "
-                                             "view's top share since 2026-11-27: a single layer of dynamic "
+                                             "matching when its rendered dynamic share is at least this (mixed "
+                                             "pixels at the object's edge blend static Gaussians in; 0.5 before: "
+                                             "-0.5 dB on the suite, all of it a band around the moving objects); "
+                                             "in a view where no pixel reaches it, this times the view's largest "
+                                             "share, at least 0.5 (since 2026-11-27: a single layer of dynamic "
                                              "Gaussians, opacity 0.9 and less between keyframes, never reached "
                                              "0.9 on CMU Panoptic basketball; matching.dynamic_threshold)",
                                        check=_fraction)
