@@ -16,7 +16,7 @@ from baselines.fourdgs.plugins import PluginError, available_plugins
 from baselines.fourdgs.renderer import composite_view, prepare_view
 from baselines.synthetic import get_scene, simulate
 from reflow_plugin.labels import vote_labels
-from reflow_plugin.matching import MatchingConfig, pair_losses
+from reflow_plugin.matching import MatchingConfig, dynamic_threshold, pair_losses
 from reflow_plugin.pairs import PairError, PairSampler, curriculum_radius
 from reflow_plugin.params import ReFlowParams
 from reflow_plugin.plugin import ReFlowPlugin
@@ -190,6 +190,38 @@ def test_full_flow_min_share_keeps_mixed_edge_pixels_out(built):
     assert strict.losses["ff_mc"].item() != pytest.approx(half.losses["ff_mc"].item())
     plugin = ReFlowPlugin({"ReFlowParams": ReFlowParams(full_flow_min_share=0.9)})
     assert plugin.config.full_flow_min_share == 0.9
+
+
+def test_full_flow_share_threshold_is_relative_to_the_views_most_dynamic_pixel(built):
+    """A single faint layer of dynamic Gaussians (opacity 0.9, less between keyframes) never reaches a
+    share of 0.9: the full-flow gate then takes min_share of the view's top share (at least 0.5), so
+    its interior enters and its edge stays out (CMU Panoptic basketball: no pixel at all before);
+    where some pixel reaches min_share the gate is min_share itself."""
+    share = torch.tensor([[0.2, 0.5, 0.6], [0.7, 0.72, 0.75]])
+    usable = torch.ones_like(share, dtype=torch.bool)
+    threshold, top = dynamic_threshold(share, usable, 0.9)
+    assert top.item() == pytest.approx(0.75) and threshold.item() == pytest.approx(0.675)
+    assert dynamic_threshold(share, usable & (share < 0.7), 0.9)[0].item() == pytest.approx(0.54)
+    assert dynamic_threshold(share * 0.5, usable, 0.9)[0].item() == pytest.approx(0.5)  # majority-dynamic floor
+    assert dynamic_threshold(share / 0.75, usable, 0.9)[0].item() == pytest.approx(0.9)  # dense layers: as before
+    assert dynamic_threshold(share / 0.75 * 0.95, usable, 0.9)[0].item() == pytest.approx(0.9)  # some pixel >= 0.9: as before
+    assert dynamic_threshold(share, usable, 0.3)[0].item() == pytest.approx(0.3)  # a low min_share as given
+
+    views, _ = _pair_views(built)
+    for view in views:  # every dynamic Gaussian at 0.75 of its weight: the top share drops below 0.9
+        view.extras["reflow_dynamic"] = view.extras["reflow_dynamic"] * 0.75
+    faint = pair_losses(views, MatchingConfig(full_flow_dynamic_only=True, full_flow_min_share=0.9),
+                        use_full=True, use_cam=False)
+    everywhere = pair_losses(views, MatchingConfig(), use_full=True, use_cam=False)
+    for k, (view, direction, all_dir) in enumerate(zip(views, faint.directions, everywhere.directions)):
+        share = view.extras["reflow_dynamic"][..., 0] / view.alpha[..., 0].clamp_min(1e-6)
+        top = share[all_dir.valid].max()
+        assert top < 0.9 and not (all_dir.valid & (share >= 0.9)).any()  # the fixed 0.9 gate: nothing
+        assert direction.valid.any()
+        assert torch.equal(direction.valid, all_dir.valid & (share >= (0.9 * top).clamp(0.5, 0.9)))
+        assert faint.metrics[f"flow_top_share_{k}"] == pytest.approx(top.item(), rel=1e-5)
+        assert faint.metrics[f"flow_valid_{k}"] > 0
+    assert faint.losses["ff_mc"].item() > 0
 
 
 def test_camera_flow_occlusion_test_drops_inconsistent_pixels(built):
