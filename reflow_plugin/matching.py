@@ -66,6 +66,7 @@ class MatchingConfig:
     occlusion_alpha2: float = 0.5
     full_flow_dynamic_only: bool = False  # full flow terms on dynamic pixels only (needs extras[DYNAMIC_KEY])
     full_flow_min_share: float = STATIC_BELOW  # with full_flow_dynamic_only: a pixel's dynamic share at least this
+    full_flow_relative_gate: bool = False  # ... or min_share x the view's top share where no pixel reaches it
     cam_occlusion: bool = False  # forward-backward test on the two camera flows
     cam_target_static: bool = False  # camera-flow terms only where the pixel lands on a static pixel of b
 
@@ -167,7 +168,7 @@ def dynamic_share(view: ViewRender) -> Tensor:
     return view.extras[DYNAMIC_KEY][..., 0] / view.alpha[..., 0].clamp_min(1e-6)
 
 
-def dynamic_threshold(share: Tensor, usable: Tensor, min_share: float) -> tuple[Tensor, Tensor]:
+def dynamic_threshold(share: Tensor, usable: Tensor, min_share: float, relative: bool = True) -> tuple[Tensor, Tensor]:
     """(threshold, the view's top share): the dynamic share a pixel needs to enter full flow matching.
 
     `min_share` itself when some `usable` pixel ([H, W] bool; share [H, W]) reaches it; otherwise
@@ -177,8 +178,11 @@ def dynamic_threshold(share: Tensor, usable: Tensor, min_share: float) -> tuple[
     in all 200 logged directions); a single layer of them cannot (their opacity starts at 0.9, and
     the keyframe seeds' temporal windows scale it below that between keyframes): CMU Panoptic
     basketball at -r 4 with the default schedule, top shares 0.69-0.82 and no pixel >= 0.9 in any
-    logged iteration. A min_share below STATIC_BELOW is taken as given. No device sync (tensors)."""
+    logged iteration. A min_share below STATIC_BELOW is taken as given. `relative=False`: min_share
+    in every view (the default of --full_flow_relative_gate). No device sync (tensors)."""
     top = torch.where(usable, share, torch.zeros_like(share)).max().detach()
+    if not relative:
+        return torch.full_like(top, min_share), top
     relative = (min_share * top).clamp(min(STATIC_BELOW, min_share), min_share)
     return torch.where(top >= min_share, torch.full_like(relative, min_share), relative), top
 
@@ -250,7 +254,8 @@ def flow_losses(pairs: list[FlowPair], config: MatchingConfig, use_full: list[bo
             if config.full_flow_dynamic_only:
                 # same per-pixel weight as over all pixels: the mean over the dynamic pixels times their share
                 share = dynamic_share(a)
-                threshold, top = dynamic_threshold(share, mask, config.full_flow_min_share)
+                threshold, top = dynamic_threshold(share, mask, config.full_flow_min_share,
+                                                   relative=config.full_flow_relative_gate)
                 dynamic = mask & (share >= threshold)
                 weight = dynamic.sum().float() / mask.sum().clamp_min(1).float()
                 covered, mask = mask, dynamic

@@ -210,8 +210,11 @@ def test_full_flow_share_threshold_is_relative_to_the_views_most_dynamic_pixel(b
     views, _ = _pair_views(built)
     for view in views:  # every dynamic Gaussian at 0.75 of its weight: the top share drops below 0.9
         view.extras["reflow_dynamic"] = view.extras["reflow_dynamic"] * 0.75
-    faint = pair_losses(views, MatchingConfig(full_flow_dynamic_only=True, full_flow_min_share=0.9),
-                        use_full=True, use_cam=False)
+    faint = pair_losses(views, MatchingConfig(full_flow_dynamic_only=True, full_flow_min_share=0.9,
+                                              full_flow_relative_gate=True), use_full=True, use_cam=False)
+    fixed = pair_losses(views, MatchingConfig(full_flow_dynamic_only=True, full_flow_min_share=0.9),
+                        use_full=True, use_cam=False)  # the default: the fixed gate
+    assert not any(direction.valid.any() for direction in fixed.directions)
     everywhere = pair_losses(views, MatchingConfig(), use_full=True, use_cam=False)
     for k, (view, direction, all_dir) in enumerate(zip(views, faint.directions, everywhere.directions)):
         share = view.extras["reflow_dynamic"][..., 0] / view.alpha[..., 0].clamp_min(1e-6)
