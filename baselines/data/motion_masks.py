@@ -223,16 +223,24 @@ def depth_consistent_errors(flows: Sequence[np.ndarray], reliable: Sequence[np.n
     return [error.astype(np.float32) for error in best]
 
 
-def nearest_static_inverse_depth(points_xy: np.ndarray, inverse_depths: np.ndarray, shape: tuple[int, int],
-                                 radius_px: int, margin: float) -> np.ndarray:
-    """[H, W] upper bound on a static pixel's inverse depth: the largest inverse depth (the nearest
-    point) within `radius_px`, divided by `margin`; the view's 95th percentile / margin where no
-    point is that close; inf without points."""
+def _points_in_view(points_xy: np.ndarray, inverse_depths: np.ndarray,
+                    shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(xy [N, 2] float64, inverse depths [N] float64, keep [N] bool): the sparse points usable as
+    depth bounds, finite, in front of the camera and inside the [H, W] view."""
     h, w = shape
     inverse_depths = np.asarray(inverse_depths, np.float64)
     xy = np.asarray(points_xy, np.float64).reshape(-1, 2)
     keep = np.isfinite(inverse_depths) & (inverse_depths > 0) & np.isfinite(xy).all(1)
     keep &= (xy[:, 0] >= 0) & (xy[:, 0] < w) & (xy[:, 1] >= 0) & (xy[:, 1] < h)
+    return xy, inverse_depths, keep
+
+
+def nearest_static_inverse_depth(points_xy: np.ndarray, inverse_depths: np.ndarray, shape: tuple[int, int],
+                                 radius_px: int, margin: float) -> np.ndarray:
+    """[H, W] upper bound on a static pixel's inverse depth: the largest inverse depth (the nearest
+    point) within `radius_px`, divided by `margin`; the view's 95th percentile / margin where no
+    point is that close; inf without points."""
+    xy, inverse_depths, keep = _points_in_view(points_xy, inverse_depths, shape)
     if not keep.any():
         return np.full(shape, np.inf, np.float32)
     grid = np.full(shape, -np.inf, np.float32)
@@ -253,11 +261,7 @@ def farthest_static_inverse_depth(points_xy: np.ndarray, inverse_depths: np.ndar
     points seen nearby); pixels with no point that close get the view's 5th percentile, times
     `margin`. No points at all: 0 (no bound).
     """
-    h, w = shape
-    inverse_depths = np.asarray(inverse_depths, np.float64)
-    xy = np.asarray(points_xy, np.float64).reshape(-1, 2)
-    keep = np.isfinite(inverse_depths) & (inverse_depths > 0) & np.isfinite(xy).all(1)
-    keep &= (xy[:, 0] >= 0) & (xy[:, 0] < w) & (xy[:, 1] >= 0) & (xy[:, 1] < h)
+    xy, inverse_depths, keep = _points_in_view(points_xy, inverse_depths, shape)
     if not keep.any():
         return np.zeros(shape, np.float32)
     grid = np.full(shape, np.inf, np.float32)
