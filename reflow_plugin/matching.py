@@ -66,7 +66,10 @@ class MatchingConfig:
     occlusion_alpha2: float = 0.5
     full_flow_dynamic_only: bool = False  # full flow terms on dynamic pixels only (needs extras[DYNAMIC_KEY])
     full_flow_min_share: float = STATIC_BELOW  # with full_flow_dynamic_only: a pixel's dynamic share at least this
-    full_flow_relative_gate: bool = False  # ... or min_share x the view's top share where no pixel reaches it
+    # ... or min_share x the view's top share where no pixel reaches it (dynamic_threshold): an
+    # experiment knob, no flag (ReFlowParams stays at 40 fields): it acts on DAVIS views too and no
+    # benchmark run has measured it (docs/REAL_CAPTURES.md, "Basketball as a wide rig")
+    full_flow_relative_gate: bool = False
     cam_occlusion: bool = False  # forward-backward test on the two camera flows
     cam_target_static: bool = False  # camera-flow terms only where the pixel lands on a static pixel of b
 
@@ -179,7 +182,7 @@ def dynamic_threshold(share: Tensor, usable: Tensor, min_share: float, relative:
     the keyframe seeds' temporal windows scale it below that between keyframes): CMU Panoptic
     basketball at -r 4 with the default schedule, top shares 0.69-0.82 and no pixel >= 0.9 in any
     logged iteration. A min_share below STATIC_BELOW is taken as given. `relative=False`: min_share
-    in every view (the default of --full_flow_relative_gate). No device sync (tensors)."""
+    in every view (the default: MatchingConfig.full_flow_relative_gate off). No device sync (tensors)."""
     top = torch.where(usable, share, torch.zeros_like(share)).max().detach()
     if not relative:
         return torch.full_like(top, min_share), top

@@ -150,13 +150,6 @@ class ReFlowParams:
                                              "pixels at the object's edge blend static Gaussians in; 0.5 before: "
                                              "-0.5 dB on the suite, all of it a band around the moving objects)",
                                        check=_fraction)
-    full_flow_relative_gate: bool = param(False, "ours, opt-in: in a view where no pixel reaches "
-                                                 "--full_flow_min_share, the gate is that times the view's "
-                                                 "largest share, at least 0.5 (a single layer of dynamic "
-                                                 "Gaussians, opacity 0.9 and less between keyframes, never "
-                                                 "reached 0.9 on CMU Panoptic basketball at the default "
-                                                 "schedule; matching.dynamic_threshold). Off by default: not "
-                                                 "measured on the benchmark (2026-11-27)")
     flow_every: int = param(1, "compute the flow-matching terms (and their flow channels) every this many "
                                "iterations only: a cost knob of the accuracy-versus-time sweep",
                             check=_positive)

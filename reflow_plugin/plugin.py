@@ -105,7 +105,6 @@ class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugi
             # without separation there is no static/dynamic model to split the pixels by: all pixels
             full_flow_dynamic_only=self.p.full_flow_region == "dynamic" and self.is_enabled("separation"),
             full_flow_min_share=self.p.full_flow_min_share,
-            full_flow_relative_gate=self.p.full_flow_relative_gate,
             cam_target_static=True)  # the paper masks both sides (measured neutral: +0.02 dB)
         self._blur_cache: dict[tuple[str, float], Tensor] = {}
         self._camera_motion: dict[tuple[int, int], float] = {}
