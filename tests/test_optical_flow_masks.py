@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from baselines.data import motion_masks
 from baselines.data.motion_masks import (MotionMaskOptions, estimate_motion_masks, relative_pose,
                                          static_scene_error)
 from baselines.data.optical_flow import consistent, dis_flow, forward_backward_error, sample_bilinear
@@ -215,3 +216,28 @@ def test_a_slow_object_is_found_by_the_slow_pairing_only(tmp_path):
     wrong = sum(int((both[k] & ~truth[k]).sum()) for k in middle) / sum(int((~truth[k]).sum()) for k in middle)
     assert found > 0.5 and wrong < 0.02, (found, wrong)
     assert labels._cache_key(cameras, False) != labels._cache_key(cameras, False, slow_offsets=(-4, 4))
+
+
+def test_each_unordered_pair_is_flowed_once_and_the_masks_do_not_change(balloon, monkeypatch):
+    """Frame a pairs with a + o and a + o with a: both use one DIS run of the pair (PairFlows)."""
+    images, Ks, viewmats, *_ = _load(balloon, 8)
+    options = MotionMaskOptions(slow_offsets=(-4, 4))
+    runs = []
+    real_flow_pair = motion_masks.flow_pair
+    monkeypatch.setattr(motion_masks, "flow_pair", lambda a, b: runs.append(1) or real_flow_pair(a, b))
+    shared, _ = estimate_motion_masks(images, Ks, viewmats, options=options)
+    # unordered pairs 1 or 2 frames apart (7 + 6) and 4 apart (4), once each
+    assert len(runs) == 7 + 6 + 4
+
+    class EveryRequest(motion_masks.PairFlows):  # the reference: each frame runs its own pairs
+        def __call__(self, a, b):
+            self.computed += 1
+            return motion_masks.flow_pair(self.images[a], self.images[b])
+
+    runs.clear()
+    monkeypatch.setattr(motion_masks, "PairFlows", EveryRequest)
+    reference, _ = estimate_motion_masks(images, Ks, viewmats, options=options)
+    assert len(runs) == 2 * (7 + 6 + 4)
+    assert sum(mask.sum() for mask in reference) > 0  # the balloon is found, so the comparison means something
+    for mask, expected in zip(shared, reference):
+        np.testing.assert_array_equal(mask, expected)

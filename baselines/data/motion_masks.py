@@ -322,18 +322,49 @@ PairError = Callable[[int, int, np.ndarray], np.ndarray]
 FrameErrors = Callable[[int, list[int], list[np.ndarray], list[np.ndarray]], list[np.ndarray]]
 
 
+class PairFlows:
+    """Forward and backward DIS flows of frame pairs, each UNORDERED pair computed once.
+
+    Frame a is paired with a + o and, later, frame a + o with a (the offsets are symmetric), and
+    both requests need the same two flows: the second one swaps the first's instead of running DIS
+    twice (half of the mask estimation's time). Frames are visited in increasing order, so
+    `release_before(a)` drops the pairs whose frames all lie before frame a.
+    """
+
+    def __init__(self, images: Sequence[np.ndarray]):
+        self.images = images
+        self.computed = 0  # DIS flow pairs run (for tests and benchmarks)
+        self._flows: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+
+    def __call__(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        """(flow a -> b [H, W, 2], flow b -> a [H, W, 2])."""
+        key = (min(a, b), max(a, b))
+        if key not in self._flows:
+            self._flows[key] = flow_pair(self.images[key[0]], self.images[key[1]])
+            self.computed += 1
+        lo_to_hi, hi_to_lo = self._flows[key]
+        return (lo_to_hi, hi_to_lo) if a == key[0] else (hi_to_lo, lo_to_hi)
+
+    def release_before(self, a: int) -> None:
+        for key in [key for key in self._flows if key[1] < a]:
+            del self._flows[key]
+
+
 def _frame_scores(images: Sequence[np.ndarray], a: int, offsets: Sequence[int], frame_errors: FrameErrors,
-                  min_scale_px: float) -> tuple[np.ndarray, np.ndarray, list[int]]:
+                  min_scale_px: float, pair_flows: PairFlows | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """(normalised score [H, W], raw score [H, W] in pixels, frames paired) of frame a: the per-pixel
     median over its pairs of the static-scene error, each pair's divided by its robust scale;
-    pixels whose flow fails the forward-backward test in every pair score 0 (no evidence)."""
+    pixels whose flow fails the forward-backward test in every pair score 0 (no evidence).
+    `pair_flows` shares the flows with the other frames' calls (default: computed here)."""
     n = len(images)
+    pair_flows = pair_flows or PairFlows(images)
     partners, flows, reliable = [], [], []
     for offset in offsets:
         b = a + offset
         if not 0 <= b < n or b == a:
             continue
-        fwd, bwd = flow_pair(images[a], images[b])
+        fwd, bwd = pair_flows(a, b)
         partners.append(b)
         flows.append(fwd)
         reliable.append(consistent(fwd, bwd))
@@ -392,14 +423,18 @@ def masks_from_frame_errors(images: Sequence[np.ndarray], frame_errors: FrameErr
             raise ValueError(f"estimate_motion_masks: frame {k} is {np.asarray(image).shape[:2]}, frame 0 is {shape}")
     report = MaskReport(pairs=[[] for _ in range(n)])
     masks = []
+    pair_flows = PairFlows(images)
     for a in range(n):
-        score, raw_score, pairs = _frame_scores(images, a, options.offsets, frame_errors, options.min_scale_px)
+        pair_flows.release_before(a)
+        score, raw_score, pairs = _frame_scores(images, a, options.offsets, frame_errors, options.min_scale_px,
+                                                pair_flows)
         report.pairs[a] = pairs
         if keep_scores:
             report.scores.append(score.astype(np.float32))
         moving = (score > options.threshold) & (raw_score > options.min_error_px)
         if options.slow_offsets:
-            slow, slow_raw, _ = _frame_scores(images, a, options.slow_offsets, frame_errors, options.min_scale_px)
+            slow, slow_raw, _ = _frame_scores(images, a, options.slow_offsets, frame_errors, options.min_scale_px,
+                                              pair_flows)
             # slow motion: flagged over frames far apart, and not quite static between near ones
             moving |= ((slow > options.threshold) & (slow_raw > options.slow_min_error_px)
                        & (score > options.slow_gate))
