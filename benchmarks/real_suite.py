@@ -416,10 +416,14 @@ def run_chunked(jobs: list, seconds: float, train: Callable[[object, float], Pat
     all are done. `train(job, seconds_left)` is run_one with chunk_seconds (it raises ChunkPending
     itself). No run is started or continued with less than `min_start` seconds left (a start-up,
     e.g. ReFlow's canonical space, runs before the first iteration and cannot be cut); a done run
-    costs nothing. A worker whose run was stopped takes no further job (its time is spent)."""
+    costs nothing. A worker whose run was stopped takes no further job (its time is spent). Any
+    other error (a SuiteError: a folder trained with another command) stops the worker and is
+    raised once every worker has returned, so a caller repeating the call while it is pending
+    does not loop on it."""
     deadline = time.monotonic() + seconds
     results: dict[int, Path | str] = {}
     pending: list[str] = []
+    errors: list[Exception] = []
     queue = list(enumerate(jobs))[::-1]  # popped from the end: in order
     guard = threading.Lock()
 
@@ -439,12 +443,18 @@ def run_chunked(jobs: list, seconds: float, train: Callable[[object, float], Pat
                 with guard:
                     pending.append(str(stopped))
                 return
+            except Exception as error:  # noqa: BLE001 -- re-raised in the caller's thread below
+                with guard:
+                    errors.append(error)
+                return
 
     threads = [threading.Thread(target=worker) for _ in range(max(1, workers))]
     for thread in threads:
         thread.start()
     for thread in threads:
         thread.join()
+    if errors:
+        raise errors[0]
     if len(results) < len(jobs):
         left_over = len(jobs) - len(results)
         raise ChunkPending(pending[0] if pending else

@@ -306,6 +306,19 @@ def test_run_chunked_with_workers_trains_runs_at_once_and_reports_a_stopped_one(
         Path("a"), Path("c"), Path("d")]                                   # in the jobs' order
 
 
+@pytest.mark.parametrize("workers", [1, 2])
+def test_run_chunked_raises_a_run_s_error_instead_of_calling_the_call_pending(workers):
+    """A folder that refuses its run (SuiteError) is an error, not 'call again' (exit 3), which a
+    loop repeating pending calls would retry for ever."""
+    def train(job, left):
+        if job == "b":
+            raise real_suite.SuiteError("b was started with another command")
+        return Path(job)
+
+    with pytest.raises(real_suite.SuiteError, match="another command"):
+        real_suite.run_chunked(["a", "b", "c"], 100.0, train, workers=workers)
+
+
 def test_a_chunked_run_is_continued_only_with_its_own_command_and_code(tmp_path, monkeypatch):
     capture = CAPTURES["nvidia_balloon1"]
     schedule = {"coarse_iterations": 3, "iterations": 5, "seed": 0}
