@@ -55,6 +55,9 @@ METHODS = {
     # the same without the check's fallback: the raw pointmaps whatever their scale
     "reflow_no_align_unchecked": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow",
                                   "--no-canonical_align", "--no-canonical_check"],
+    # static Gaussians through a whole-scene 4DGS field of their own (`--static_decoder field`)
+    "reflow_static_field": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow",
+                            "--static_decoder", "field"],
 }
 SCHEDULES = {
     "full": [],

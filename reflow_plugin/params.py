@@ -17,7 +17,7 @@ from arguments import param
 
 LABEL_SOURCES = ("auto", "masks", "estimate", "none")
 UPGRADE_LABELS = ("auto", "motion", "checkpoint")
-STATIC_DECODERS = ("none", "triplane")
+STATIC_DECODERS = ("none", "triplane", "field")
 CANONICAL_PROVIDERS = ("auto", "depth", "flow")
 FULL_FLOW_REGIONS = ("all", "dynamic")
 PAIR_MODES = ("partner", "both")
@@ -167,8 +167,9 @@ class ReFlowParams:
                                              "reference frame to the whole sequence (0 = all frames at once)",
                                        check=_fraction)
     # --- separated model (paper 3.2.2, appendix A.2) ---
-    static_decoder: str = param("none", "time-invariant decoder of static Gaussians: none (canonical values, "
-                                        "cheapest) or triplane (the paper's spatial planes + MLP)",
+    static_decoder: str = param("none", "decoder of static Gaussians: none (canonical values, cheapest), "
+                                        "triplane (the paper's time-invariant spatial planes + MLP) or field "
+                                        "(ours: a 4DGS deformation field of the whole scene at 4DGS's rates)",
                                 choices=STATIC_DECODERS)
     dynamic_lr_scale: float = param(10.0, "ours: learning-rate multiplier of the dynamic branch (deformation MLP "
                                           "and HexPlane); 4DGS's rates learn a deformation of a whole scene, "

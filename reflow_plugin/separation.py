@@ -10,11 +10,16 @@ Gaussians. The module IS a 4DGS `DeformNetwork` (subclass): with `static_decoder
 state dict has exactly 4DGS's keys, so a 4DGS `deformation.pth` loads into the dynamic branch and
 ours loads in 4DGS.
 
-Static Gaussians are time-invariant. Two choices (`static_decoder`):
+Static Gaussians are time-invariant, except with "field". The choices (`static_decoder`):
 - "none": their stored (canonical) values are used as they are;
 - "triplane": the paper's D_s: the dynamic branch's SPATIAL planes (xy, xz, yz, shared, as the
   paper's F_s) are sampled, multiplied per level and decoded by a small MLP into time-invariant
-  deltas of position, log-scale and rotation (state-dict keys `static_decoder.*`, beyond 4DGS's).
+  deltas of position, log-scale and rotation (state-dict keys `static_decoder.*`, beyond 4DGS's);
+- "field" (ours): a second 4DGS deformation network over the WHOLE scene box (state-dict keys
+  `static_field.*`), at 4DGS's own rates (optimizer groups `static_deformation` / `static_grid`,
+  `scheduled_groups`) and regularisers, output layers zeroed: the static Gaussians get the
+  baseline's small time-varying corrections (what a casual capture's camera and geometry errors
+  ask for), while the dynamic branch keeps its box, rates, windows and anchor.
 
 Labels are 4DGS's `_deformation_table` ([N] bool): clone/split/prune keep it in step and it is
 saved as `deformation_table.pth`, so labels survive densification and checkpoints for free. A
@@ -62,6 +67,14 @@ def temporal_window(opacity_logits: Tensor, times: Tensor, centers: Tensor, log_
     window = torch.exp(-0.5 * ((times - centers) / log_scales.exp()) ** 2)
     opacity = (torch.sigmoid(opacity_logits) * window).clamp(1e-6, 1.0 - 1e-6)
     return torch.logit(opacity)
+
+
+def _zero_heads(network: DeformNetwork) -> None:
+    """Zero the last layer of every delta head: the network starts as the identity."""
+    for name in ("pos_deform", "scales_deform", "rotations_deform", "opacity_deform", "shs_deform"):
+        last = getattr(network.deformation_net, name)[3]
+        nn.init.zeros_(last.weight)
+        nn.init.zeros_(last.bias)
 
 
 class StaticDecoder(nn.Module):
@@ -112,15 +125,15 @@ class SeparatedDeformation(DeformNetwork):
         self.relative_time = relative_time
         self.anchored = anchored
         self.window_cull = float(window_cull)
-        if static_decoder not in ("none", "triplane"):
-            raise ValueError(f"static_decoder must be 'none' or 'triplane', got {static_decoder!r}")
+        if static_decoder not in ("none", "triplane", "field"):
+            raise ValueError(f"static_decoder must be 'none', 'triplane' or 'field', got {static_decoder!r}")
         if zero_init:
-            for name in ("pos_deform", "scales_deform", "rotations_deform", "opacity_deform", "shs_deform"):
-                last = getattr(self.deformation_net, name)[3]
-                nn.init.zeros_(last.weight)
-                nn.init.zeros_(last.bias)
+            _zero_heads(self)
         self.static_decoder = (StaticDecoder(self.deformation_net.grid, self.deformation_net.W)
                                if static_decoder == "triplane" else None)
+        self.static_field = DeformNetwork(args) if static_decoder == "field" else None
+        if self.static_field is not None:
+            _zero_heads(self.static_field)
 
     def forward(self, state: GaussianState, times: Tensor, buffers: Mapping[str, Tensor] | None = None) -> GaussianState:
         """Deform the rows whose `buffers["deformation_table"]` is True (all rows without a table)."""
@@ -135,6 +148,8 @@ class SeparatedDeformation(DeformNetwork):
         out = state
         if self.static_decoder is not None and not bool(table.all()):
             out = self._decode_static(out, (~table).nonzero().squeeze(1))
+        if self.static_field is not None and not bool(table.all()):
+            out = self._deform_static(out, times, table, (buffers or {}).get("row_used"))
         dynamic = table.nonzero().squeeze(1)
         if dynamic.numel() == 0:
             return out
@@ -240,7 +255,21 @@ class SeparatedDeformation(DeformNetwork):
         changed = {"opacity_logits"}
         if self.static_decoder is not None:
             changed |= {"means", "log_scales", "rotations"}
+        if self.static_field is not None:
+            changed |= set(STATE_FIELDS) - self.static_field.passed_through()
         return super().passed_through() - changed
+
+    def _deform_static(self, state: GaussianState, times: Tensor, table: Tensor, used: Tensor | None) -> GaussianState:
+        """Static rows through `static_field` at their (absolute) times; rows the caller does not read skipped."""
+        static = ~table if used is None else ~table & used
+        rows = static.nonzero().squeeze(1)
+        if rows.numel() == 0:
+            return state
+        passed = self.static_field.passed_through()
+        moved = self.static_field(state.index(rows, stand_ins=passed), times[rows])
+        return GaussianState(*(
+            getattr(state, name) if name in passed else getattr(state, name).index_copy(0, rows, getattr(moved, name))
+            for name in STATE_FIELDS))
 
     def _decode_static(self, state: GaussianState, rows: Tensor) -> GaussianState:
         deltas = self.static_decoder(state.means[rows])
@@ -259,6 +288,29 @@ class SeparatedDeformation(DeformNetwork):
         """4DGS's "grid" group (the static decoder reads these planes, it owns none)."""
         return self.deformation_net.get_grid_parameters()
 
+    def scheduled_groups(self) -> dict[str, tuple[str, list[nn.Parameter]]]:
+        """The static field's own optimizer groups (4DGS's rates: the dynamic multiplier scales the
+        "deformation" and "grid" groups only); none without it."""
+        if self.static_field is None:
+            return {}
+        return {"static_deformation": ("deformation", self.static_field.get_mlp_parameters()),
+                "static_grid": ("grid", self.static_field.get_grid_parameters())}
+
+    def set_aabb(self, xyz_max: Any, xyz_min: Any) -> None:
+        """The host's box (every point): both fields; `fit_box` then narrows the dynamic branch's."""
+        super().set_aabb(xyz_max, xyz_min)
+        if self.static_field is not None:
+            self.static_field.set_aabb(xyz_max, xyz_min)
+
+    def compute_regulation(self, time_smoothness_weight: float, l1_time_planes_weight: float,
+                           plane_tv_weight: float) -> Tensor:
+        """4DGS's HexPlane regularisers of the dynamic branch, plus the static field's."""
+        total = super().compute_regulation(time_smoothness_weight, l1_time_planes_weight, plane_tv_weight)
+        if self.static_field is not None:
+            total = total + self.static_field.compute_regulation(time_smoothness_weight, l1_time_planes_weight,
+                                                                 plane_tv_weight)
+        return total
+
     def fit_box(self, points: Tensor, margin: float) -> None:
         """Set the HexPlane box to `points`' box grown by `margin` x its size per side.
 
@@ -270,4 +322,4 @@ class SeparatedDeformation(DeformNetwork):
         size = torch.where(size > 1e-6 * size.max().clamp_min(1e-12), size, size.max().clamp_min(1e-3))
         centre = 0.5 * (low + high)
         half = 0.5 * size * (1.0 + 2.0 * margin)
-        self.set_aabb(centre + half, centre - half)
+        super().set_aabb(centre + half, centre - half)

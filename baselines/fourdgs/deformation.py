@@ -92,7 +92,10 @@ class DeformationModule(Protocol):
     makes one call (adding ``buffers["row_gaussian"]``, [kN] long: the Gaussian each row is, for
     a term a module computes once per Gaussian; and, when its caller says which rows it reads,
     ``buffers["row_used"]``, [kN] bool: a module may return the other rows undeformed). Optimizer groups "deformation" and "grid" are built from
-    ``get_mlp_parameters()`` and ``get_grid_parameters()``. Optional: ``passed_through()`` ->
+    ``get_mlp_parameters()`` and ``get_grid_parameters()``; optional ``scheduled_groups()`` ->
+    {name: (schedule, parameters)} adds groups of the module's own (e.g. a second field at other
+    rates: ``GaussianModel.scale_learning_rate(name, ...)``), each on the "deformation" or "grid"
+    schedule. Optional: ``passed_through()`` ->
     the state fields the module returns as its input's own tensors without reading them, for any
     input (4DGS's network: the fields of its disabled heads); ``deform_many`` then repeats only
     the other fields and hands these as zero-copy stand-ins (state.stand_in), checking that they

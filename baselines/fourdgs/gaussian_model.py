@@ -313,8 +313,10 @@ class GaussianModel:
             "scaling": _opt_value(opt, "scaling_lr"),
             "rotation": _opt_value(opt, "rotation_lr"),
         }
+        for name, (schedule, _) in self._module_groups().items():
+            lrs[name] = lrs[schedule]  # a deformation module's own group starts on its schedule's rate
         groups = [{"params": self._group_params(name), "lr": float(lrs[name]) * self._lr_scales.get(name, 1.0),
-                   "name": name} for name in GROUP_ORDER]
+                   "name": name} for name in (*GROUP_ORDER, *self._module_groups())]
         groups += [{"params": [p], "lr": self._extra_param_lrs[n] * self._lr_scales.get(n, 1.0), "name": n}
                    for n, p in self._extra_params.items()]
         # fused: one kernel per group instead of ~10 ops per tensor (the deformation group alone
@@ -351,6 +353,8 @@ class GaussianModel:
             "deformation": self.deformation_scheduler_args,
             "grid": self.grid_scheduler_args,
         }
+        for name, (schedule, _) in self._module_groups().items():
+            schedules[name] = schedules[schedule]
         rates = {}
         for group in self.optimizer.param_groups:
             schedule = schedules.get(group["name"])
@@ -381,8 +385,19 @@ class GaussianModel:
 
     @property
     def group_names(self) -> list[str]:
-        """Every optimizer group name: 4DGS's eight, then registered parameters."""
-        return list(GROUP_ORDER) + list(self._extra_params)
+        """Every optimizer group name: 4DGS's eight, the deformation module's own, then registered parameters."""
+        return list(GROUP_ORDER) + list(self._module_groups()) + list(self._extra_params)
+
+    def _module_groups(self) -> Mapping[str, tuple[str, list[nn.Parameter]]]:
+        """The deformation module's groups beyond 4DGS's two (optional ``scheduled_groups()``):
+        name -> (the host schedule it follows, "deformation" or "grid"; its parameters)."""
+        extra = getattr(self._deformation, "scheduled_groups", None)
+        groups = dict(extra()) if extra is not None else {}
+        for name, (schedule, _) in groups.items():
+            if name in GROUP_ORDER or schedule not in ("deformation", "grid"):
+                raise ValueError(f"deformation module group {name!r}: the name must be new and the schedule "
+                                 f"'deformation' or 'grid', got {schedule!r}")
+        return groups
 
     def _group_params(self, name: str) -> list[nn.Parameter]:
         if name in ROW_GROUPS:
@@ -393,6 +408,9 @@ class GaussianModel:
             return list(self._deformation.get_grid_parameters())
         if name in self._extra_params:
             return [self._extra_params[name]]
+        module_groups = self._module_groups()
+        if name in module_groups:
+            return list(module_groups[name][1])
         raise ValueError(f"unknown parameter group {name!r} (groups: {self.group_names})")
 
     # ----------------------------------------------------------------------------------------
@@ -851,12 +869,15 @@ class GaussianModel:
             raise ValueError(f"{source}: no learning rate stored for per-Gaussian parameters {missing_lrs}")
         check_deformation_state(self._deformation, deformation_state, source)
         parameters = extras.get("parameters", {})
-        unknown_frozen = [n for n in extras.get("frozen", []) if n not in GROUP_ORDER and n not in parameters]
+        module_groups = self._module_groups()
+        unknown_frozen = [n for n in extras.get("frozen", [])
+                          if n not in GROUP_ORDER and n not in parameters and n not in module_groups]
         if unknown_frozen:
             raise ValueError(f"{source}: frozen groups {unknown_frozen} do not exist")
         expected_groups = {name: [rows[name].shape] for name in ROW_GROUPS}
         expected_groups["deformation"] = [p.shape for p in self._deformation.get_mlp_parameters()]
         expected_groups["grid"] = [p.shape for p in self._deformation.get_grid_parameters()]
+        expected_groups.update({name: [p.shape for p in params] for name, (_, params) in module_groups.items()})
         expected_groups.update({name: [value.shape] for name, value in parameters.items()})
         check_state_by_group_name(optimizer_state, expected_groups, source)
 
