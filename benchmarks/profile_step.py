@@ -182,23 +182,49 @@ def op_table(trainer, iters: int, top: int) -> tuple[list[tuple[str, float, floa
 
 
 def baseline_argv(train_argv: list[str]) -> list[str]:
-    """The same training arguments without the plugin: ``--plugin NAME`` dropped and a plugin config
-    (``.../reflow.py``) replaced by the family's ``default.py`` beside it (the 4DGS config it builds on)."""
-    out, skip = [], False
+    """The same training arguments without the plugin: ``--plugin NAME`` dropped, the plugin's own
+    flags (its parameter groups' fields, ``--disable`` / ``--enable``) dropped with their values, and a
+    plugin config (``.../reflow.py``) replaced by the family's ``default.py`` beside it (the 4DGS
+    config it builds on)."""
+    dropped = _plugin_flags(train_argv)
+    out, skip_value, skip_values = [], False, False
     for k, arg in enumerate(train_argv):
-        if skip:
-            skip = False
+        if skip_value:
+            skip_value = False
             continue
+        if skip_values and not arg.startswith("--"):
+            continue
+        skip_values = False
         if arg == "--plugin":
-            skip = True
+            skip_value = True
             continue
         if arg.startswith("--plugin="):
+            continue
+        if arg.split("=", 1)[0] in dropped:
+            skip_values = "=" not in arg  # the values that follow (a list flag takes several)
             continue
         if k > 0 and train_argv[k - 1] == "--configs" and Path(arg).name != "default.py":
             sibling = Path(arg).with_name("default.py")
             arg = str(sibling) if sibling.exists() else arg
         out.append(arg)
     return out
+
+
+def _plugin_flags(train_argv: list[str]) -> set[str]:
+    """``--name`` and ``--no-name`` of every field of the named plugins' parameter groups, plus the
+    component switches: flags the baseline's parser does not know."""
+    import dataclasses
+
+    from baselines.fourdgs.plugins import load_plugin_class
+
+    names = [train_argv[k + 1] for k, a in enumerate(train_argv[:-1]) if a == "--plugin"]
+    names += [a.split("=", 1)[1] for a in train_argv if a.startswith("--plugin=")]
+    flags = {"--disable", "--enable"}
+    for name in (n for item in names for n in item.split(",") if n):
+        for group in load_plugin_class(name).param_groups.values():
+            for field in dataclasses.fields(group):
+                flags |= {f"--{field.name}", f"--no-{field.name}"}
+    return flags
 
 
 def profile(train_argv: list[str], args, gaussians: int | None) -> dict:
