@@ -35,10 +35,7 @@ step() {  # step NAME RESERVE CMD...: run CMD with the time left minus RESERVE s
     timeout "$limit" "$@" 2>&1 | tee "$OUT/$name.log"
     echo "== $name: exit ${PIPESTATUS[0]} after $(( $(date +%s) - s ))s"
 }
-if ls .whl/*.whl >/dev/null 2>&1; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
-        && export PYTHONPATH=/tmp/site${PYTHONPATH:+:$PYTHONPATH}
-fi
+source "$(dirname "$0")/gpu_wheels.sh" .whl python3
 python3 -m pip install -q --no-deps --no-build-isolation --no-index -e . || echo "editable install failed"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 python3 -c "import torch, gsplat, sys; print('python', sys.version.split()[0], 'torch', torch.__version__, 'gsplat', gsplat.__version__, 'cuda', torch.cuda.is_available())"

@@ -42,10 +42,7 @@ JOBS=${JOBS:-1}
 WHEELS=${WHEELS:-.whl}
 PYTHON=${PYTHON:-python3}
 export PYTHONUNBUFFERED=1 MAX_JOBS=${MAX_JOBS:-16}
-if ls "$WHEELS"/*.whl >/dev/null 2>&1; then
-    "$PYTHON" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "$WHEELS"/*.whl \
-        && export PYTHONPATH=/tmp/site${PYTHONPATH:+:$PYTHONPATH}
-fi
+source "$(dirname "$0")/gpu_wheels.sh" "$WHEELS" "$PYTHON"
 "$PYTHON" -m pip install -q --no-deps --no-build-isolation --no-index -e . >/dev/null || echo "[gpu_real_suite] editable install failed"
 "$PYTHON" - <<'EOF' || exit 2
 import torch, sys
