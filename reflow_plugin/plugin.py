@@ -184,7 +184,7 @@ class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugi
         if source == "motion" or (source == "auto" and not written_by_reflow(point_cloud_dir)):
             times = sorted({float(c.time) for c in ctx.train_cameras})
             self.info["upgrade"] = upgrade_4dgs_model(ctx.model, times, self.p.upgrade_motion_threshold,
-                                                      ctx.scene.cameras_extent, bake=self.is_enabled("separation"))
+                                                      ctx.scene.cameras_extent, bake=self._bakes_static())
             log.info("upgraded %s: %d dynamic, %d static Gaussians (motion > %.4g world units)", point_cloud_dir,
                      self.info["upgrade"]["dynamic"], self.info["upgrade"]["static"],
                      self.info["upgrade"]["threshold_world"])
@@ -192,6 +192,11 @@ class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugi
             self._scale_dynamic_branch(ctx.model)
         table = ctx.model.deformation_table
         self.info["labels"] = {"dynamic": int(table.sum()), "static": int((~table).sum())}
+
+    def _bakes_static(self) -> bool:
+        """Whether an upgraded 4DGS model's static Gaussians are frozen at their time averages: with
+        separation, unless the static field carries 4DGS's own network (`complete_foreign_state`)."""
+        return self.is_enabled("separation") and self.p.static_decoder != "field"
 
     def on_stage_start(self, ctx) -> None:
         means = ctx.model.get_xyz.detach()

@@ -279,6 +279,27 @@ class SeparatedDeformation(DeformNetwork):
             rotations=state.rotations.index_add(0, rows, deltas[:, 6:10]),
         )
 
+    def complete_foreign_state(self, state: Mapping[str, Any]) -> Mapping[str, Any]:
+        """A 4DGS `deformation.pth` (this module's keys less the static branch's) made loadable.
+
+        Called by the host before it checks a loaded point_cloud folder's deformation state. A
+        state that holds any static-branch key is returned unchanged and checked as it is (a
+        ReFlow folder, or a broken one). Otherwise the static branch is filled in: the field
+        (`static_field.*`) becomes a copy of the 4DGS network itself, so the upgraded static
+        Gaussians keep 4DGS's motion and need no baking; the triplane decoder keeps its
+        zero-initialised output layer (the identity). Without a static branch: unchanged.
+        """
+        branch = "static_field." if self.static_field is not None else (
+            "static_decoder." if self.static_decoder is not None else None)
+        if branch is None or any(str(k).startswith(branch) for k in state):
+            return state
+        completed = dict(state)
+        if self.static_field is not None:
+            completed.update({branch + k: v for k, v in state.items() if k in self.static_field.state_dict()})
+        else:
+            completed.update({k: v.detach().clone() for k, v in self.state_dict().items() if k.startswith(branch)})
+        return completed
+
     def get_mlp_parameters(self) -> list[nn.Parameter]:
         """4DGS's "deformation" group, plus the static decoder's MLP."""
         extra = list(self.static_decoder.parameters()) if self.static_decoder is not None else []

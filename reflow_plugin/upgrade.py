@@ -15,7 +15,9 @@ needs static/dynamic labels, so on loading such a folder (the host's `on_load` h
   keeps it there at every time. Its centre is then within ``threshold`` x extent of where the
   4DGS model puts it at any training time, which bounds the render difference; dynamic
   Gaussians keep the 4DGS field itself (the dynamic branch has 4DGS's state-dict names) and
-  render exactly as before. With separation off nothing is baked and the renders are identical.
+  render exactly as before. With separation off nothing is baked and the renders are identical;
+  with `--static_decoder field` nothing is baked either: the static field starts as a copy of the
+  4DGS network (`SeparatedDeformation.complete_foreign_state`), so static Gaussians move as before.
 
 A folder written by a ReFlow run (its run's `config.json` has a ``ReFlowParams`` group) keeps
 its saved labels (`deformation_table.pth`).

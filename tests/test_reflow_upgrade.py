@@ -152,7 +152,8 @@ def test_a_missing_or_mismatched_entry_is_named(folder, tmp_path):
         _load(broken, hidden, separated=True)
 
 
-def test_upgrade_through_train_py_and_render(tiny_scene, tmp_path):
+@pytest.mark.parametrize("static_decoder", ["none", "field"])
+def test_upgrade_through_train_py_and_render(tiny_scene, tmp_path, static_decoder):
     base = tmp_path / "fourdgs"
     argv = [a for a in _argv(tiny_scene, base, 10, 30) if a not in ("--plugin", "reflow")]
     argv = [a for i, a in enumerate(argv) if not (a == "--flow_vis_every" or argv[i - 1] == "--flow_vis_every")]
@@ -164,11 +165,63 @@ def test_upgrade_through_train_py_and_render(tiny_scene, tmp_path):
 
     out = tmp_path / "upgraded"
     trainer = build_trainer(_argv(tiny_scene, out, 10, 10, "--start_checkpoint", str(checkpoint),
-                                  "--upgrade_motion_threshold", "0.0"))
+                                  "--upgrade_motion_threshold", "0.0", "--static_decoder", static_decoder))
     finish_run(trainer, trainer.train())
     results = json.loads((out / "results.json").read_text())
     upgrade = results["reflow"]["upgrade"]
-    assert upgrade["dynamic"] + upgrade["static"] > 0 and upgrade["static_baked"]
+    assert upgrade["dynamic"] + upgrade["static"] > 0
+    assert upgrade["static_baked"] == (static_decoder != "field")  # the field carries 4DGS's motion
     assert written_by_reflow(out / "point_cloud" / "iteration_10")
     written = render_from_argv(["-m", str(out), "--skip_video"])
     assert (written["test"] / "renders" / "00000.png").is_file()
+
+
+def _load_with(folder: Path, hidden, static_decoder: str) -> GaussianModel:
+    model = GaussianModel(1, hidden, deformation=SeparatedDeformation(hidden, static_decoder))
+    load_point_cloud_dir(folder, model)
+    model.active_sh_degree = 1
+    return model
+
+
+def test_with_the_static_field_the_4dgs_motion_is_kept_and_nothing_is_baked(folder):
+    hidden = hidden_args()
+    original = _load(folder, hidden, separated=False)
+    upgraded = _load_with(folder, hidden, "field")
+    field_state = upgraded.deformation.static_field.state_dict()
+    for key, value in torch.load(folder / "deformation.pth").items():  # the field is the 4DGS network
+        assert torch.equal(field_state[key], value), key
+    report = upgrade_4dgs_model(upgraded, TIMES, THRESHOLD, extent=1.0, bake=False)
+    dynamic = upgraded.deformation_table
+    assert torch.equal(dynamic, original.get_xyz[:, 0] > 0) and not report["static_baked"]
+    with torch.no_grad():
+        for t in TIMES + [0.5 / 7]:
+            before, after = original.deform(t, "fine"), upgraded.deform(t, "fine")
+            torch.testing.assert_close(after.means, before.means, rtol=0, atol=1e-6)
+            torch.testing.assert_close(after.log_scales, before.log_scales, rtol=0, atol=1e-6)
+            torch.testing.assert_close(after.rotations, before.rotations, rtol=0, atol=1e-6)
+    with torch.no_grad():
+        moved = (upgraded.deform(TIMES[-1], "fine").means - upgraded.deform(0.0, "fine").means).norm(dim=-1)
+    assert float(moved[~dynamic].max()) > 0  # static Gaussians keep their (small) 4DGS motion
+
+
+def test_with_the_triplane_decoder_the_upgrade_equals_the_plain_one(folder):
+    hidden = hidden_args()
+    plain, triplane = _load(folder, hidden, separated=True), _load_with(folder, hidden, "triplane")
+    for model in (plain, triplane):
+        upgrade_4dgs_model(model, TIMES, THRESHOLD, extent=1.0, bake=True)
+    assert torch.equal(plain.deformation_table, triplane.deformation_table)
+    with torch.no_grad():
+        for t in TIMES[::3]:
+            torch.testing.assert_close(triplane.deform(t, "fine").means, plain.deform(t, "fine").means,
+                                       rtol=0, atol=1e-6)
+
+
+def test_a_state_with_part_of_the_static_field_is_refused(folder, tmp_path):
+    broken = tmp_path / "point_cloud" / "iteration_1"
+    broken.mkdir(parents=True)
+    (broken / "point_cloud.ply").write_bytes((folder / "point_cloud.ply").read_bytes())
+    state = torch.load(folder / "deformation.pth")
+    state["static_field.deformation_net.pos_deform.3.bias"] = state["deformation_net.pos_deform.3.bias"]
+    torch.save(state, broken / "deformation.pth")
+    with pytest.raises(ValueError, match="missing: static_field"):
+        _load_with(broken, hidden_args(), "field")

@@ -423,6 +423,9 @@ def load_point_cloud_dir(
     rows = read_gaussian_ply(directory / PLY_FILE, model.max_sh_degree)
     count = rows["xyz"].shape[0]
     deformation_state = _torch_load(directory / DEFORMATION_FILE, "cpu")
+    complete = getattr(model._deformation, "complete_foreign_state", None)
+    if complete is not None and isinstance(deformation_state, Mapping):  # e.g. a plugin's extra branch
+        deformation_state = complete(deformation_state)
     check_deformation_state(model._deformation, deformation_state, str(directory / DEFORMATION_FILE))
 
     table = None

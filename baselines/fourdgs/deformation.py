@@ -99,7 +99,10 @@ class DeformationModule(Protocol):
     the state fields the module returns as its input's own tensors without reading them, for any
     input (4DGS's network: the fields of its disabled heads); ``deform_many`` then repeats only
     the other fields and hands these as zero-copy stand-ins (state.stand_in), checking that they
-    come back untouched.
+    come back untouched. Optional: ``complete_foreign_state(state) -> state``, called when a
+    point_cloud folder is loaded, before its ``deformation.pth`` is checked: a module with more
+    parts than 4DGS's network fills in the entries a 4DGS folder lacks (the check stays strict
+    for everything else).
     """
 
     def __call__(
