@@ -86,6 +86,10 @@ class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugi
     def __init__(self, params: Mapping[str, Any] | None = None, enabled: frozenset[str] | None = None) -> None:
         super().__init__(params, enabled)
         self.p: ReFlowParams = self.params.get("ReFlowParams") or ReFlowParams()
+        if self.p.static_decoder != "none" and not self.is_enabled("separation"):
+            # without separation 4DGS's one network deforms every Gaussian: no static branch to decode
+            raise ValueError(f"--static_decoder {self.p.static_decoder} needs the separation component; "
+                             f"drop --disable separation or the flag")
         self.sampler: PairSampler | None = None
         self.masks: list[np.ndarray] | None = None  # per training camera (uid order), True = dynamic
         self.depth_cameras: list = []  # the training cameras as the depth steps read them (initial_point_cloud)

@@ -2,11 +2,14 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from baselines.fourdgs.checkpoint import load_point_cloud_dir, save_point_cloud_dir
 from baselines.fourdgs.deformation import DeformNetwork
 from baselines.fourdgs.gaussian_model import GaussianModel
+from reflow_plugin.params import ReFlowParams
+from reflow_plugin.plugin import ReFlowPlugin
 from reflow_plugin.separation import SeparatedDeformation
 from tests._model_helpers import hidden_args, opt_args
 
@@ -121,3 +124,13 @@ def test_an_exact_resume_restores_the_field_and_its_optimizer_state():
                                                model.optimizer.state[theirs]["exp_avg"])
                     compared += 1
     assert compared > 0
+
+
+def test_a_static_decoder_without_separation_is_refused():
+    everything = frozenset(ReFlowPlugin.components)
+    for decoder in ("field", "triplane"):
+        params = {"ReFlowParams": ReFlowParams(static_decoder=decoder)}
+        assert ReFlowPlugin(params, everything).p.static_decoder == decoder
+        with pytest.raises(ValueError, match=f"--static_decoder {decoder} needs the separation component"):
+            ReFlowPlugin(params, everything - {"separation"})
+    ReFlowPlugin({"ReFlowParams": ReFlowParams()}, everything - {"separation"})  # the default decoder is fine
