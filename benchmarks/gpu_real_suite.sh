@@ -11,7 +11,9 @@
 #              of each capture's longest budget in OUT/images. Several trainings on one GPU pay
 #              little: on an H200 (2026-11-27) 12 at once ran 1.3-1.5 it/s each, about 17 it/s in
 #              all, against 13 it/s for one alone (Balloon1 -r 4; the processes' kernels are
-#              time-sliced, not overlapped, without MPS).
+#              time-sliced, not overlapped, without MPS). Budget 3000 of basketball at -r 4 (160x90),
+#              both methods at once on an H200 (2026-11-27): the baseline 7-8 it/s (300 + 3000 in
+#              about 7 minutes), ReFlow 4 it/s beside it and 7 it/s alone (about 10 minutes).
 # Every capture at its full stored resolution (-r 1; RESOLUTION=NAME=R,... to change), captures
 # $CAPTURES (default nvidia_balloon1,panoptic_basketball; set up with real_suite.py --setup).
 # Wheels in $WHEELS (default .whl/: gsplat==1.5.3, plyfile; for machines without a registry) are
