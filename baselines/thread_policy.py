@@ -23,7 +23,7 @@ torch is imported, and only for what the user did not set:
   5 MiB a change). Besides that memory, the kernels are long-lived blocks created in the middle of
   a step's activations, where they split the freed heap into pieces the next, slightly larger
   activations no longer fit: a baseline training at 40k Gaussians had 4 GiB of freed but unusable
-  heap after 300 iterations densifying every 5 (docs/PROFILE.md, "Memory").
+  heap after 300 iterations densifying every 5 (docs/PROFILE.md, "Memory of a training run").
 
 Allocator (glibc only, any time, unless a ``MALLOC_*`` variable or ``GLIBC_TUNABLES`` is set):
 glibc serves blocks above its mmap threshold (128 KiB, adapting up to 32 MiB) with fresh

@@ -26,9 +26,9 @@ allocated them.
 ``--trajectory``: train from the initial cloud as train.py does (densification on) and print every
 ``--every`` iterations the count, RSS, its peak so far and glibc's heap (in use, and freed but
 kept). A run's memory grows with the changes of count, not with one iteration's need (see
-docs/PROFILE.md, "Memory"); ``--no_release`` keeps the trainer from giving freed memory back, and
-``ONEDNN_PRIMITIVE_CACHE_CAPACITY=1024 LRU_CACHE_CAPACITY=1024`` in the environment restore the
-caches' defaults: both together are the behaviour before 2026-11-27.
+docs/PROFILE.md, "Memory of a training run"); ``--no_release`` keeps the trainer from giving
+freed memory back, and ``ONEDNN_PRIMITIVE_CACHE_CAPACITY=1024 LRU_CACHE_CAPACITY=1024`` in the
+environment restore the caches' defaults: both together are the behaviour before 2026-11-27.
 
 One measurement per process: the allocator's state after one count or run would change the
 next one's figures.
