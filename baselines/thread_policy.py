@@ -14,7 +14,16 @@ torch is imported, and only for what the user did not set:
   processes keep the machine busy (``/proc/stat`` sampled for 0.2 s; at least 1). On a 2-core
   machine with other jobs running, a 2-thread step waits at every parallel op for a worker that
   the scheduler has parked: a fine iteration measured 808 ms with 2 threads and 32 ms with 1
-  (benchmarks/train_baseline.py under load). On a quiet machine every CPU is used.
+  (benchmarks/train_baseline.py under load). On a quiet machine every CPU is used;
+- ``ONEDNN_PRIMITIVE_CACHE_CAPACITY`` and ``LRU_CACHE_CAPACITY`` (oneDNN's primitive cache and
+  PyTorch's ideep cache above it) = ``PRIMITIVE_CACHE_ENTRIES`` instead of their default 1024.
+  On a CPU with native bfloat16 the deformation MLP runs through oneDNN (``mlp_precision``), and
+  oneDNN builds and caches a JIT-compiled kernel per matrix shape: a fine iteration uses 12 of
+  them, and every densification or pruning changes the row count, so 12 more stay cached (about
+  5 MiB a change). Besides that memory, the kernels are long-lived blocks created in the middle of
+  a step's activations, where they split the freed heap into pieces the next, slightly larger
+  activations no longer fit: a baseline training at 40k Gaussians had 4 GiB of freed but unusable
+  heap after 300 iterations densifying every 5 (docs/PROFILE.md, "Memory of a training run").
 
 Allocator (glibc only, any time, unless a ``MALLOC_*`` variable or ``GLIBC_TUNABLES`` is set):
 glibc serves blocks above its mmap threshold (128 KiB, adapting up to 32 MiB) with fresh
@@ -24,7 +33,10 @@ gradient (143 MB, 35k pages) costs 150 ms of faults per step. ``mallopt`` turns 
 off (``M_MMAP_MAX`` 0: every block comes from the heap and is reused once freed) and raises the
 trim threshold to 512 MiB (freed memory at the heap's top is kept up to that much). The price:
 up to 512 MiB of freed memory stays with the process, and memory freed below live blocks is
-reused, not returned to the system.
+reused, not returned to the system. So the trainer calls ``release_free_memory`` (glibc's
+``malloc_trim``: the pages of every free block go back) after a step that changed the number of
+Gaussians: the activations of the new count are a little larger than the holes the old ones left,
+so those holes would otherwise stay resident, unused, for the rest of the run.
 
 Nothing about threads is changed once torch has been imported (its pool is then configured).
 """
@@ -38,6 +50,10 @@ import time
 from typing import MutableMapping
 
 SPIN_COUNT = "30000"
+# entries of oneDNN's and ideep's primitive caches: a training step uses 12 (a few times that
+# with a plugin's extra networks), so the current row count's kernels stay cached
+PRIMITIVE_CACHE_ENTRIES = "64"
+PRIMITIVE_CACHE_VARIABLES = ("ONEDNN_PRIMITIVE_CACHE_CAPACITY", "LRU_CACHE_CAPACITY")
 # glibc's mallopt parameters (malloc.h) and our values
 M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4
 TRIM_THRESHOLD_BYTES = 512 * 1024 * 1024
@@ -111,6 +127,9 @@ def apply_thread_policy(environ: MutableMapping[str, str] | None = None,
         applied["OMP_WAIT_POLICY"] = "PASSIVE"
         if "GOMP_SPINCOUNT" not in environ:
             applied["GOMP_SPINCOUNT"] = SPIN_COUNT
+    for name in PRIMITIVE_CACHE_VARIABLES:
+        if name not in environ:
+            applied[name] = PRIMITIVE_CACHE_ENTRIES
     decision = f"OMP_NUM_THREADS={environ['OMP_NUM_THREADS']} (yours)" if "OMP_NUM_THREADS" in environ else ""
     if "OMP_NUM_THREADS" not in environ:
         cpus = available_cpus()
@@ -147,3 +166,21 @@ def apply_allocator_policy(environ: MutableMapping[str, str] | None = None, libc
         return False
     # mallopt returns 1 on success
     return bool(mallopt(M_MMAP_MAX, 0)) & bool(mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
+
+
+def release_free_memory(libc: object | None = None) -> bool:
+    """Give the pages of glibc's free heap blocks back to the system (``malloc_trim(0)``).
+
+    What the allocator kept for reuse is released; live memory is untouched, so results do not
+    change, and a later step that reuses a released page faults it in again. True when glibc
+    released something; False off glibc. ``libc`` is for tests.
+    """
+    if libc is None:
+        if sys.platform != "linux" or platform.libc_ver()[0] != "glibc":
+            return False
+        try:
+            libc = ctypes.CDLL(None)
+        except OSError:
+            return False
+    trim = getattr(libc, "malloc_trim", None)
+    return bool(trim(0)) if trim is not None else False

@@ -10,18 +10,24 @@ import pytest
 from baselines import thread_policy
 from baselines.fourdgs.app import REPO_ROOT
 
+# oneDNN's and ideep's primitive caches, capped unless the user set them
+CACHES = {name: thread_policy.PRIMITIVE_CACHE_ENTRIES for name in thread_policy.PRIMITIVE_CACHE_VARIABLES}
+
 
 def test_policy_fills_only_what_the_user_left_unset(monkeypatch):
     monkeypatch.setattr(thread_policy, "available_cpus", lambda: 2)
     monkeypatch.setattr(thread_policy, "idle_cpus", lambda: 8.0)
     monkeypatch.setattr(thread_policy.os, "cpu_count", lambda: 8)  # a CPU set of 2 on an 8-CPU machine
     env: dict[str, str] = {}
-    expected = {"OMP_WAIT_POLICY": "PASSIVE", "GOMP_SPINCOUNT": thread_policy.SPIN_COUNT, "OMP_NUM_THREADS": "2"}
+    expected = {"OMP_WAIT_POLICY": "PASSIVE", "GOMP_SPINCOUNT": thread_policy.SPIN_COUNT, **CACHES,
+                "OMP_NUM_THREADS": "2"}
     assert thread_policy.apply_thread_policy(env, torch_loaded=False) == expected
     assert env == expected
-    user = {"OMP_WAIT_POLICY": "ACTIVE", "OMP_NUM_THREADS": "6"}
+    user = {"OMP_WAIT_POLICY": "ACTIVE", "OMP_NUM_THREADS": "6", "ONEDNN_PRIMITIVE_CACHE_CAPACITY": "1024",
+            "LRU_CACHE_CAPACITY": "8"}
+    kept = dict(user)
     assert thread_policy.apply_thread_policy(user, torch_loaded=False) == {}
-    assert user == {"OMP_WAIT_POLICY": "ACTIVE", "OMP_NUM_THREADS": "6"}
+    assert user == kept
     assert thread_policy.apply_thread_policy({}, torch_loaded=True) == {}  # too late: torch already set up
 
 
@@ -30,7 +36,8 @@ def test_thread_count_untouched_when_every_cpu_is_available(monkeypatch):
     monkeypatch.setattr(thread_policy, "idle_cpus", lambda: 7.8)
     monkeypatch.setattr(thread_policy.os, "cpu_count", lambda: 8)
     assert thread_policy.apply_thread_policy({}, torch_loaded=False) == {"OMP_WAIT_POLICY": "PASSIVE",
-                                                                         "GOMP_SPINCOUNT": thread_policy.SPIN_COUNT}
+                                                                         "GOMP_SPINCOUNT": thread_policy.SPIN_COUNT,
+                                                                         **CACHES}
 
 
 def test_a_busy_machine_gets_fewer_threads(monkeypatch):
@@ -65,7 +72,7 @@ def test_idle_cpus_reads_the_aggregate_line_of_proc_stat(tmp_path, monkeypatch):
 
 def test_a_user_spin_count_is_kept():
     env = {"GOMP_SPINCOUNT": "0", "OMP_NUM_THREADS": "2"}
-    assert thread_policy.apply_thread_policy(env, torch_loaded=False) == {"OMP_WAIT_POLICY": "PASSIVE"}
+    assert thread_policy.apply_thread_policy(env, torch_loaded=False) == {"OMP_WAIT_POLICY": "PASSIVE", **CACHES}
     assert env["GOMP_SPINCOUNT"] == "0"
 
 
@@ -76,6 +83,10 @@ class _FakeLibc:
 
     def mallopt(self, param: int, value: int) -> int:
         self.calls.append((param, value))
+        return self.result
+
+    def malloc_trim(self, pad: int) -> int:
+        self.calls.append(("malloc_trim", pad))
         return self.result
 
 
@@ -100,6 +111,25 @@ def test_allocator_policy_is_accepted_by_the_real_glibc():
     code = "from baselines import thread_policy as t; print(t.apply_allocator_policy({}))"
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO_ROOT, capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["True"]
+
+
+def test_release_free_memory_trims_the_whole_heap():
+    libc = _FakeLibc()
+    assert thread_policy.release_free_memory(libc=libc)
+    assert libc.calls == [("malloc_trim", 0)]  # pad 0: every free page above and below live blocks
+    assert not thread_policy.release_free_memory(libc=object())  # no malloc_trim: nothing done
+
+
+@pytest.mark.skipif(__import__("platform").libc_ver()[0] != "glibc", reason="glibc only")
+def test_release_free_memory_returns_freed_pages_with_the_real_glibc():
+    """Freed heap blocks under the policy (no chunk mmaps) stay resident until released."""
+    code = ("import ctypes, re; from baselines import thread_policy as t; t.apply_allocator_policy({}); "
+            "rss = lambda: int(re.search(r'VmRSS:\\s+(\\d+)', open('/proc/self/status').read()).group(1)); "
+            "blocks = [ctypes.create_string_buffer(4 << 20) for _ in range(32)]; "
+            "live = ctypes.create_string_buffer(64); del blocks; before = rss(); "
+            "print(t.release_free_memory(), before - rss() > 64 << 10)")
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO_ROOT, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["True", "True"]  # more than 64 MiB of the 128 MiB freed went back
 
 
 @pytest.mark.parametrize("user_policy", [None, "ACTIVE"])

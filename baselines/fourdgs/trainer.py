@@ -45,6 +45,7 @@ from .hooks import HookRunner, TrainContext
 from .interrupt import StopFlag, deferred_interrupt
 from .plugins import Plugin, PluginError
 from .renderer import composite_view, prepare_views, render
+from baselines.thread_policy import release_free_memory
 from baselines.run_folder import (RunFolder, RunIdentity, TrainingInterrupted, check_resume_identity,
                                   check_upgrade_plugins)
 from .run_log import RunLog, StageTimer
@@ -277,11 +278,15 @@ class Trainer:
             self.hooks.call("post_backward", ctx)
 
         with self.timer("densify_step"):
+            count = model.num_gaussians
             with torch.no_grad():
                 if self._gradients_finite():
                     self._densify()
                     model.optimizer.step()
                 model.optimizer.zero_grad(set_to_none=True)
+            if model.num_gaussians != count:
+                # a new count: the next activations no longer fit the holes the old ones left (thread_policy.py)
+                release_free_memory()
         self.hooks.call("on_iteration_end", ctx)
         ctx.metrics.update(
             loss=float(ctx.loss.detach()), num_gaussians=model.num_gaussians,
