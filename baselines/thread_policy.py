@@ -146,6 +146,16 @@ def apply_thread_policy(environ: MutableMapping[str, str] | None = None,
     return applied
 
 
+def _glibc() -> object | None:
+    """The process's C library when it is glibc on Linux (its malloc tunables exist), else None."""
+    if sys.platform != "linux" or platform.libc_ver()[0] != "glibc":
+        return None
+    try:
+        return ctypes.CDLL(None)
+    except OSError:
+        return None
+
+
 def apply_allocator_policy(environ: MutableMapping[str, str] | None = None, libc: object | None = None) -> bool:
     """No chunk mmaps and a high trim threshold in glibc (see the module docstring); True when applied.
 
@@ -154,13 +164,7 @@ def apply_allocator_policy(environ: MutableMapping[str, str] | None = None, libc
     environ = os.environ if environ is None else environ
     if any(name in environ for name in _MALLOC_VARIABLES):
         return False
-    if libc is None:
-        if sys.platform != "linux" or platform.libc_ver()[0] != "glibc":
-            return False
-        try:
-            libc = ctypes.CDLL(None)
-        except OSError:
-            return False
+    libc = libc if libc is not None else _glibc()
     mallopt = getattr(libc, "mallopt", None)
     if mallopt is None:
         return False
@@ -175,12 +179,6 @@ def release_free_memory(libc: object | None = None) -> bool:
     change, and a later step that reuses a released page faults it in again. True when glibc
     released something; False off glibc. ``libc`` is for tests.
     """
-    if libc is None:
-        if sys.platform != "linux" or platform.libc_ver()[0] != "glibc":
-            return False
-        try:
-            libc = ctypes.CDLL(None)
-        except OSError:
-            return False
+    libc = libc if libc is not None else _glibc()
     trim = getattr(libc, "malloc_trim", None)
     return bool(trim(0)) if trim is not None else False
