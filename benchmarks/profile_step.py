@@ -47,6 +47,7 @@ def _prepare(train_argv: list[str], model_from: Path | None, warmup: int, gaussi
     import torch
 
     from baselines.fourdgs.app import build_trainer
+    from baselines.fourdgs.row_order import order_rows
 
     if not any(a in ("-m", "--model_path") or a.startswith("--model_path=") for a in train_argv):
         import tempfile  # a scratch model folder, not output/<scene> (which may hold a real run)
@@ -66,6 +67,7 @@ def _prepare(train_argv: list[str], model_from: Path | None, warmup: int, gaussi
             colors = torch.as_tensor(cloud.colors, dtype=torch.float32)[pick]
             trainer.ctx.model.create_from_pcd(points[pick] + jitter, colors, trainer.cameras_extent,
                                               device=trainer.device)
+            order_rows(trainer.ctx.model)  # as the trainer lays out any new rows (row_order.py)
         for stage, total in (("coarse", trainer.opt.coarse_iterations), ("fine", warmup)):
             trainer._begin_stage(stage, total)
             for iteration in range(1, total + 1):

@@ -15,6 +15,11 @@ blocks of different frames differ by more than most changes. The switch is read 
 (set to 0 for "off", removed for "on", the default). Prints the median ms per iteration of each
 variant (wall time and the process's CPU time), the ReFlow / baseline ratio with the switch off and
 on, and on / off per trainer; asserts nothing. A switch the baseline never reads gives it two samples of one variant (a noise check).
+
+Layout switches are read when the rows are rewritten, not per call: for `REFLOW4DGS_ROW_ORDER` both
+trainers are prepared with it off (rows in the order the run made them: ReFlow's initial cloud, the
+baseline's resampled one), and each block puts a trainer's rows in that order ("off") or in
+spatial order ("on") with `GaussianModel.permute_rows` before its untimed first iteration.
 """
 from __future__ import annotations
 
@@ -35,6 +40,27 @@ from benchmarks.machine import cpu_model, load_average  # noqa: E402
 from baselines.thread_policy import apply_thread_policy  # noqa: E402
 
 SETTINGS = {"off": "0", "on": None}  # None: the variable removed (the code's default)
+ROW_ORDER_SWITCH = "REFLOW4DGS_ROW_ORDER"  # a layout switch (module docstring)
+
+
+class RowOrderLayout:
+    """Puts each trainer's rows in their prepared order (off) or in spatial order (on)."""
+
+    def __init__(self, trainers: dict) -> None:
+        from baselines.fourdgs.row_order import spatial_order
+
+        self.trainers = trainers
+        self.to_sorted = {label: spatial_order(t.ctx.model.get_xyz) for label, t in trainers.items()}
+        self.current = {label: "off" for label in trainers}
+
+    def __call__(self, label: str, setting: str) -> None:
+        if self.current[label] == setting:
+            return
+        import torch
+
+        order = self.to_sorted[label] if setting == "on" else torch.argsort(self.to_sorted[label])
+        self.trainers[label].ctx.model.permute_rows(order)
+        self.current[label] = setting
 
 
 def _samplers(trainer) -> list:
@@ -47,10 +73,11 @@ def _samplers(trainer) -> list:
     return found
 
 
-def interleaved(trainers: dict, switch: str, iters: int, rounds: int) -> tuple[dict, dict, dict]:
+def interleaved(trainers: dict, switch: str, iters: int, rounds: int, layout=None) -> tuple[dict, dict, dict]:
     """Median wall ms and median process CPU ms per iteration of each (trainer label, setting),
     blocks of `iters`, order alternating by round; and per trainer the median over rounds of the
-    round's on / off CPU time (the two blocks of a round ran the same frames, close in time)."""
+    round's on / off CPU time (the two blocks of a round ran the same frames, close in time).
+    `layout(label, setting)`, when given, is called before each block (a layout switch)."""
     from benchmarks.profile_step import _step
 
     variants = [(label, setting) for label in trainers for setting in SETTINGS]
@@ -68,6 +95,8 @@ def interleaved(trainers: dict, switch: str, iters: int, rounds: int) -> tuple[d
                 else:
                     os.environ[switch] = SETTINGS[setting]
                 trainer = trainers[label]
+                if layout is not None:
+                    layout(label, setting)
                 _step(trainer, 1)  # the first iteration after a switch is not timed
                 for _ in range(iters):
                     start, cpu = time.perf_counter(), time.process_time()
@@ -103,12 +132,23 @@ def main(argv: list[str] | None = None) -> int:
     from benchmarks.profile_step import _prepare, _step, baseline_argv
 
     print(f"# switch_ab {args.switch}: {policy}, {cpu_model()}, load {load_average()}")
-    plugin = _prepare(train_argv, None, 0)
-    count = plugin.ctx.model.num_gaussians
-    trainers = {"plugin": plugin, "baseline": _prepare(baseline_argv(train_argv), None, 0, count)}
+    is_layout = args.switch == ROW_ORDER_SWITCH
+    saved = os.environ.get(args.switch)
+    if is_layout:
+        os.environ[args.switch] = "0"  # prepared in the order the run makes its rows
+    try:
+        plugin = _prepare(train_argv, None, 0)
+        count = plugin.ctx.model.num_gaussians
+        trainers = {"plugin": plugin, "baseline": _prepare(baseline_argv(train_argv), None, 0, count)}
+    finally:
+        if is_layout and saved is None:
+            os.environ.pop(args.switch, None)
+        elif is_layout:
+            os.environ[args.switch] = saved
     for trainer in trainers.values():
         _step(trainer, 3)  # allocator and caches warm
-    wall, cpu, paired = interleaved(trainers, args.switch, args.iters, args.rounds)
+    layout = RowOrderLayout(trainers) if is_layout else None
+    wall, cpu, paired = interleaved(trainers, args.switch, args.iters, args.rounds, layout)
     size = f"{plugin.train_cameras[0].width}x{plugin.train_cameras[0].height}"
     print(f"\n{count} Gaussians, {size}, blocks of {args.iters} x {args.rounds} rounds; CPU: the process's "
           "CPU time (steadier than wall time on a shared machine when the step runs one thread)\n")

@@ -70,6 +70,23 @@ def _kernel(pa, pb, threads=None):
     return flow_kernel.flow_features_kernel(pa, pb, 0.01, 1e8, 1e6, num_threads=threads)
 
 
+def _float64(p):
+    return replace(p, **{k: p[k].detach().double() for k in ("means2d", "cov2d", "conics", "depths")})
+
+
+def _no_less_accurate(got: torch.Tensor, twin: torch.Tensor, truth: torch.Tensor, name: str) -> None:
+    """float32: the kernel's largest error against the float64 truth is at most 4x the torch twin's
+    (plus 1e-6 of the largest value). A float32 result of the cancelling b = t0.t1 depends on the
+    compiler's and the CPU's instruction choices (fused multiply-adds), so the two float32
+    computations need not agree to a fixed tolerance, only be equally close to the truth."""
+    finite = torch.isfinite(truth)
+    assert torch.equal(torch.isfinite(got), finite), f"{name}: non-finite entries differ from the truth's"
+    err_got = (got.double() - truth)[finite].abs().max()
+    err_twin = (twin.double() - truth)[finite].abs().max()
+    bound = 4 * err_twin + 1e-6 * truth[finite].abs().max()
+    assert err_got <= bound, f"{name}: kernel error {float(err_got):.3g} against the twin's {float(err_twin):.3g}"
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("hard", [False, True], ids=["posed", "hard_rows"])
 def test_kernel_equals_torch_twin(compiled, dtype, hard):
@@ -78,14 +95,21 @@ def test_kernel_equals_torch_twin(compiled, dtype, hard):
         pa, pb = _with_hard_rows(pa, pb)
     want, want_grads = _channels_and_grads(flow_features_torch, pa, pb)
     got, got_grads = _channels_and_grads(_kernel, pa, pb)
-    tol = {"rtol": 2e-5, "atol": 1e-5} if dtype == torch.float32 else {"rtol": 1e-12, "atol": 1e-10}
-    torch.testing.assert_close(got, want, **tol)
     if hard:
         assert got[:9, 6].tolist() == [0, 0, 0, 0, 0, 1, 1, 1, 0]
-    for name, g, w in zip(("means2d_a", "conics_a", "means2d_b", "cov2d_b"), got_grads, want_grads):
+    for name, g in zip(("means2d_a", "conics_a", "means2d_b", "cov2d_b"), got_grads):
         assert torch.isfinite(g).all(), name
+    if dtype == torch.float32:
+        truth, truth_grads = _channels_and_grads(flow_features_torch, _float64(pa), _float64(pb))
+        _no_less_accurate(got, want, truth, "channels")
+        for name, g, w, t in zip(("means2d_a", "conics_a", "means2d_b", "cov2d_b"), got_grads, want_grads, truth_grads):
+            _no_less_accurate(g, w, t, f"{name} gradient")
+        return
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-10)
+    for name, g, w in zip(("means2d_a", "conics_a", "means2d_b", "cov2d_b"), got_grads, want_grads):
         scale = w.abs().max().clamp_min(1e-30)
-        torch.testing.assert_close(g / scale, w / scale, **tol, msg=lambda m, name=name: f"{name} gradient: {m}")
+        torch.testing.assert_close(g / scale, w / scale, rtol=1e-12, atol=1e-10,
+                                   msg=lambda m, name=name: f"{name} gradient: {m}")
 
 
 def test_kernel_passes_gradcheck(compiled):

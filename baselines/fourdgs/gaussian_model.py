@@ -674,6 +674,20 @@ class GaussianModel:
             )
         self._keep_rows(~mask)
 
+    @torch.no_grad()
+    def permute_rows(self, order: Tensor) -> None:
+        """Reorder the Gaussians: row i becomes old row ``order[i]`` ([N] int64, a permutation) in
+        every per-Gaussian parameter, its Adam moments, the statistics and the buffers (row_order.py).
+        The parameters are replaced, so gradients already computed are dropped (as densification does)."""
+        count = self.num_gaussians
+        if order.dtype != torch.int64 or order.shape != (count,):
+            raise ValueError(f"permute_rows: order must be int64 [{count}], got {order.dtype} {list(order.shape)}")
+        order = order.to(self.device)
+        in_range = bool(((order >= 0) & (order < count)).all())
+        if not (in_range and bool((torch.bincount(order, minlength=count) == 1).all())):
+            raise ValueError(f"permute_rows: order is not a permutation of 0..{count - 1}")
+        self._keep_rows(order)
+
     def _rows_of(self, selection: Tensor, repeats: int = 1) -> dict[str, Tensor]:
         """Every per-Gaussian parameter and buffer at ``selection``, tiled ``repeats`` times."""
         rows = {name: _repeat_rows(self._get_row_param(name).detach()[selection], repeats)

@@ -11,7 +11,7 @@ checkpoints (a resumed run continues exactly like an uninterrupted one); the opt
 on a stage's last iteration; files are written atomically, iteration folders whole (checkpoint.py).
 A checkpoint records the plugins and components that wrote it, and resuming it under others is an
 error naming both (run_folder.py). Ctrl-C stops after the current iteration with a checkpoint
-(interrupt.py).
+(interrupt.py). The Gaussians' rows are kept in spatial order, a memory layout only (row_order.py).
 """
 from __future__ import annotations
 
@@ -45,6 +45,7 @@ from .hooks import HookRunner, TrainContext
 from .interrupt import StopFlag, deferred_interrupt
 from .plugins import Plugin, PluginError
 from .renderer import composite_view, prepare_views, render
+from .row_order import order_rows
 from baselines.thread_policy import release_free_memory
 from baselines.run_folder import (RunFolder, RunIdentity, TrainingInterrupted, check_resume_identity,
                                   check_upgrade_plugins)
@@ -158,6 +159,7 @@ class Trainer:
         ctx.model = model
         self._set_time_span(model)
         self.hooks.call("on_model_created", ctx)
+        order_rows(model)  # after the plugins: their per-Gaussian buffers are registered by now
         self.run_log.event("model_created", num_gaussians=model.num_gaussians, point_cloud_source=ctx.point_cloud_source)
 
     def _set_time_span(self, model: GaussianModel) -> None:
@@ -433,6 +435,8 @@ class Trainer:
         if record.skipped:
             self.run_log.event("final_stretch", stage=ctx.stage, iteration=ctx.iteration, skipped=record.skipped,
                                reason="kept (saved/final) iteration ahead: no opacity reset or densification")
+        if record.densify_ran or record.prune_ran:
+            order_rows(ctx.model)  # the rows were rewritten anyway (row_order.py)
         if record.densify_ran or record.prune_ran or record.opacity_reset:
             self.hooks.call("post_densify", ctx)
 
