@@ -132,8 +132,8 @@ class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugi
     def on_scene_loaded(self, ctx) -> None:
         self._run_dir_path = self._run_dir(ctx)
         if self.uses_pairs:
-            # a wide rig pairs each frame with its own camera's frames (pairs.py, rig.py)
-            sequences = pairing_sequences(ctx.train_cameras)
+            # --rig_flow_pairs camera: a wide rig pairs each frame with its own camera's frames (pairs.py, rig.py)
+            sequences = pairing_sequences(ctx.train_cameras) if self.p.rig_flow_pairs == "camera" else []
             by_camera = len(sequences) > 1
             self.sampler = PairSampler(ctx.train_cameras, self.p.pair_window, seed=ctx.args.opt.seed,
                                        sequences=sequences if by_camera else None)

@@ -121,12 +121,14 @@ def test_pair_sequences_must_name_distinct_training_frames(rig):
         PairSampler(rig.train_cameras, window=2, sequences=[[0, 99]])
 
 
-def test_the_plugin_pairs_by_camera_on_a_wide_rig_only(rig_path, tiny_scene, tmp_path):
+def test_rig_flow_pairs_camera_pairs_by_camera_on_a_wide_rig_only(rig_path, tiny_scene, tmp_path):
     from baselines.fourdgs.app import build_trainer
     from tests.test_reflow_plugin import _argv
 
-    for path, expected in ((rig_path, "per rig camera (wide rig)"), (tiny_scene, "time order")):
-        trainer = build_trainer(_argv(path, tmp_path / path.name, 1, 1))
+    cases = ((rig_path, "camera", "per rig camera (wide rig)"), (rig_path, "time", "time order"),
+             (tiny_scene, "camera", "time order"))
+    for path, pairing, expected in cases:
+        trainer = build_trainer(_argv(path, tmp_path / f"{path.name}_{pairing}", 1, 1, "--rig_flow_pairs", pairing))
         plugin = trainer.hooks.plugins[0]
         plugin.on_scene_loaded(trainer.ctx)
         assert plugin.info["flow_pairs"] == expected
