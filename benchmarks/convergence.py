@@ -4,7 +4,7 @@
                                      [--methods baseline,reflow] [--budgets 1000,3000,7000,14000]
                                      [--coarse_iterations 3000] [--resolution nvidia_balloon1=8,...]
                                      [--data data/real] [--out output/convergence] [--seed 0]
-                                     [--plot docs/images/convergence.png] [--report-only]
+                                     [--plot PNG] [--report-only]
                                      [--jobs 1] [--chunk-seconds S] [--images DIR]
                                      [-- extra train.py flags]
 
@@ -36,7 +36,7 @@ itself. The exact flags of each run are in its `real_done.json` and in the JSON 
 
 Writes `OUT/convergence.json` (schedule, flags and figures per run), `OUT/convergence.md` (one
 table: PSNR all / inside the true masks / outside, SSIM, Gaussians at the end, wall seconds) and a
-PNG (`--plot`): PSNR (solid, left axis) and Gaussians (dashed, right axis, log) against fine
+PNG (`--plot`, default `OUT/convergence.png`): PSNR (solid, left axis) and Gaussians (dashed, right axis, log) against fine
 iterations, one panel per capture, both methods.
 """
 from __future__ import annotations
@@ -169,7 +169,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--resolution", help="NAME=R,... train.py -r per capture (default: the registry's)")
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--out", type=Path, default=ROOT / "output" / "convergence")
-    parser.add_argument("--plot", type=Path, default=ROOT / "docs" / "images" / "convergence.png")
+    parser.add_argument("--plot", type=Path, default=None,
+                        help="PNG to write (default OUT/convergence.png; the documented plot is docs/images/convergence.png)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--report-only", action="store_true", help="train nothing; tabulate the finished runs")
     parser.add_argument("--chunk-seconds", type=float, metavar="S",
@@ -274,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
         {"full_budget": FULL_BUDGET, "full_schedule": FULL_SCHEDULE, "budgets": budgets,
          "coarse_iterations": args.coarse_iterations, "rows": rows}, indent=1, default=str))
     resolution_note = ", ".join(f"{c.name} -r {c.resolution}" for c in captures)
-    plot(rows, args.plot, f"coarse {args.coarse_iterations} its; {resolution_note}; densification scaled to the budget")
+    plot(rows, args.plot or args.out / "convergence.png", f"coarse {args.coarse_iterations} its; {resolution_note}; densification scaled to the budget")
     return 1 if any(isinstance(r, str) for r in outcome.values()) else 0
 
 
