@@ -21,7 +21,6 @@ STATIC_DECODERS = ("none", "triplane", "field")
 CANONICAL_PROVIDERS = ("auto", "depth", "flow")
 FULL_FLOW_REGIONS = ("all", "dynamic")
 PAIR_MODES = ("partner", "both")
-RIG_PAIRINGS = ("time", "camera")
 
 # --- fixed values: flags until 2026-11-26, now constants nobody should tune (docs/PARAMETERS.md) ---
 PHOTO_SSIM_WEIGHT = 0.2  # photometric loss 0.8 L1 + 0.2 (1 - SSIM): the paper's and 3DGS's
@@ -133,11 +132,6 @@ class ReFlowParams:
     # --- pairs and flow ---
     pair_window: int = param(2, "largest distance, in training frames, between the two frames of a pair",
                              check=_positive)
-    rig_flow_pairs: str = param("time", "flow-matching pairs on a wide rig read monocularly (reflow_plugin/rig.py): "
-                                         "time (time neighbours, other rig cameras) or camera (ours, opt-in: the "
-                                         "frame's own camera's next occurrences; basketball at 3000 iterations "
-                                         "+0.79 dB inside the people, -0.09 overall); no effect elsewhere",
-                                choices=RIG_PAIRINGS)
     pair_mode: str = param("partner", "partner (ours): each iteration renders the host's one view a and only "
                                       "deforms + projects a nearby frame b (what L_mc and camera flow of a -> b "
                                       "need); no L_cr (it needs b's render). both (the paper): both frames "

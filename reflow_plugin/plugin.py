@@ -61,7 +61,7 @@ from .evaluate import flow_metrics, summary_line, write_flow_metrics
 from .external import ExternalFlowCache
 from .flow import flow_features
 from .flow_matching import FlowMatching
-from .labels import aligned_depths, pairing_sequences, training_masks
+from .labels import aligned_depths, training_masks
 from .matching import DYNAMIC_KEY, FLOW_KEY, MatchingConfig, check_occlusion_mode, flow_losses
 from .pairs import PairSampler
 from .params import (DYNAMIC_AABB_MARGIN, DYNAMIC_INIT_OPACITY, FLOW_MIN_ALPHA, OCCLUSION_ALPHA1, OCCLUSION_ALPHA2,
@@ -132,12 +132,7 @@ class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugi
     def on_scene_loaded(self, ctx) -> None:
         self._run_dir_path = self._run_dir(ctx)
         if self.uses_pairs:
-            # --rig_flow_pairs camera: a wide rig pairs each frame with its own camera's frames (pairs.py, rig.py)
-            sequences = pairing_sequences(ctx.train_cameras) if self.p.rig_flow_pairs == "camera" else []
-            by_camera = len(sequences) > 1
-            self.sampler = PairSampler(ctx.train_cameras, self.p.pair_window, seed=ctx.args.opt.seed,
-                                       sequences=sequences if by_camera else None)
-            self.info["flow_pairs"] = "per rig camera (wide rig)" if by_camera else "time order"
+            self.sampler = PairSampler(ctx.train_cameras, self.p.pair_window, seed=ctx.args.opt.seed)
         available, reason = canonical_available()
         self.info["components"] = sorted(self.enabled)
         if self.is_enabled("comp_init") and not available:

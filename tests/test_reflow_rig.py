@@ -21,7 +21,6 @@ from reflow_plugin.canonical.geometry import backproject, grid, to_world
 from reflow_plugin.canonical import providers
 from reflow_plugin.canonical.providers import FlowProvider, guide_depth
 from reflow_plugin.labels import estimated_masks, pairing_sequences
-from reflow_plugin.pairs import PairError, PairSampler
 from reflow_plugin.rig import pose_groups, viewing_angle_deg, wide_rig
 
 
@@ -91,48 +90,6 @@ def test_rig_masks_pair_each_camera_with_its_own_frames(rig, truth):
     by_time, _ = estimate_motion_masks(images, [c.K.numpy() for c in cameras], [c.viewmat.numpy() for c in cameras])
     assert _iou(by_time, truth) < 0.1  # what the time order gave
     assert _iou(by_camera, truth) > 0.6
-
-
-def test_flow_pairs_on_a_wide_rig_stay_within_each_rig_camera(rig):
-    """Flow matching's pairs: a frame and its own camera's next occurrences, never a time neighbour
-    seen from another rig camera (which the time order would give on every draw)."""
-    cameras = rig.train_cameras
-    groups = pose_groups([c.viewmat.numpy() for c in cameras])
-    sequences = pairing_sequences(cameras)
-    place = {i: (k, n) for k, s in enumerate(sequences) for n, i in enumerate(s)}
-    by_camera = PairSampler(cameras, window=2, seed=0, sequences=sequences)
-    by_time = PairSampler(cameras, window=2, seed=0)
-    for _ in range(300):
-        i, j = by_camera.sample()
-        assert groups[i] == groups[j] and place[i][0] == place[j][0] and 1 <= abs(place[i][1] - place[j][1]) <= 2
-        j = by_camera.partner(i)
-        assert groups[i] == groups[j] and 1 <= abs(place[i][1] - place[j][1]) <= 2
-    assert all(groups[i] != groups[j] for i, j in (by_time.sample() for _ in range(50)))
-    # a span that holds one frame per camera: no same-camera partner there, time order instead
-    i, j = by_camera.sample(center=10, radius=1)
-    assert {by_camera.position[i], by_camera.position[j]} <= {9, 10, 11}
-    assert by_camera.position[by_camera.partner(by_camera.order[10], 9, 11)] in (9, 11)
-
-
-def test_pair_sequences_must_name_distinct_training_frames(rig):
-    with pytest.raises(PairError, match="distinct camera indices"):
-        PairSampler(rig.train_cameras, window=2, sequences=[[0, 4, 4]])
-    with pytest.raises(PairError, match="distinct camera indices"):
-        PairSampler(rig.train_cameras, window=2, sequences=[[0, 99]])
-
-
-def test_rig_flow_pairs_camera_pairs_by_camera_on_a_wide_rig_only(rig_path, tiny_scene, tmp_path):
-    from baselines.fourdgs.app import build_trainer
-    from tests.test_reflow_plugin import _argv
-
-    cases = ((rig_path, "camera", "per rig camera (wide rig)"), (rig_path, "time", "time order"),
-             (tiny_scene, "camera", "time order"))
-    for path, pairing, expected in cases:
-        trainer = build_trainer(_argv(path, tmp_path / f"{path.name}_{pairing}", 1, 1, "--rig_flow_pairs", pairing))
-        plugin = trainer.hooks.plugins[0]
-        plugin.on_scene_loaded(trainer.ctx)
-        assert plugin.info["flow_pairs"] == expected
-        assert (plugin.sampler._home is not None) == (expected != "time order")
 
 
 def test_flow_provider_triangulates_rig_frames_with_the_nearest_cameras(rig_path, rig, truth):
