@@ -577,6 +577,11 @@ class RunFolder:
         self.record["last_checkpoint"] = str(path)
         self._write()
 
+    def record_facts(self, **facts: Any) -> None:
+        """Add facts about the run to run.json (e.g. the machine it trains on), written at once."""
+        self.record.update(facts)
+        self._write()
+
     def end(self, state: str, reason: str | None = None, **facts: Any) -> None:
         """Mark the run finished / failed / interrupted (best effort: never masks the original error)."""
         global _current

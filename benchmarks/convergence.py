@@ -71,7 +71,7 @@ FULL_SCHEDULE = {
 MIN_SCALED = {"densification_interval": 10, "pruning_interval": 10}  # others: at least 1
 DEFAULT_BUDGETS = (1000, 3000, 7000, 14_000)
 DEFAULT_CAPTURES = ("nvidia_balloon1", "panoptic_basketball")
-COLUMNS = ("PSNR", "PSNR-mask", "PSNR-outside", "SSIM", "Gaussians", "train_s")
+COLUMNS = ("PSNR", "PSNR-mask", "PSNR-outside", "SSIM", "Gaussians", "train_s", "MLP")
 
 
 def scaled_schedule(budget: int) -> dict[str, int]:
@@ -104,7 +104,7 @@ def final_gaussians(run: Path) -> int | None:
 
 def table(rows: list[dict]) -> str:
     """Markdown: one line per (capture, method, budget), in that order."""
-    fmt = {"SSIM": "{:.3f}", "Gaussians": "{:,}", "train_s": "{:.0f}"}
+    fmt = {"SSIM": "{:.3f}", "Gaussians": "{:,}", "train_s": "{:.0f}", "MLP": "{}"}
     lines = ["| capture | method | fine its | " + " | ".join(COLUMNS) + " |", "|---|---|---:|" + "---:|" * len(COLUMNS)]
     for row in sorted(rows, key=lambda r: (r["capture"], r["method"], r["budget"])):
         if "failed" in row:
@@ -257,7 +257,7 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append({**row, "failed": result})
                 continue
             figures = real_suite.summarise(result, masks, scene)
-            row.update({k: figures.get(k) for k in ("PSNR", "SSIM", "PSNR-mask", "PSNR-outside", "mask %", "code")})
+            row.update({k: figures.get(k) for k in ("PSNR", "SSIM", "PSNR-mask", "PSNR-outside", "mask %", "code", "MLP")})
             row["Gaussians"] = final_gaussians(result)
             row["train_s"] = figures.get("train_s")
             row["command"] = json.loads((result / real_suite.DONE_FILE).read_text())["command"]

@@ -63,6 +63,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from baselines.run_folder import read_run_record  # noqa: E402
 from benchmarks.cli import split_passthrough  # noqa: E402
 from benchmarks.real_captures import (CAPTURES, DEFAULT_DATA, Capture, CaptureError, dataset_dir,  # noqa: E402
                                       fetch_instructions, require_ready, select, setup)
@@ -77,7 +78,7 @@ DEFAULT_METHODS = ("baseline", "reflow")
 DONE_FILE = "real_done.json"
 CHUNKS_FILE = "real_chunks.json"  # a chunked run: its command, code and each call's seconds
 INTERRUPTED_RC = 143  # train.py after SIGTERM: checkpointed and stopped (baselines/cli_exit.py)
-COLUMNS = ("PSNR", "SSIM", "PSNR-mask", "PSNR-outside", "mask %", "train_s", "code")
+COLUMNS = ("PSNR", "SSIM", "PSNR-mask", "PSNR-outside", "mask %", "train_s", "code", "MLP")
 NEAR_PLANE = 0.01  # the rasterizer's default near plane (baselines/render/api.py)
 
 
@@ -343,6 +344,14 @@ def masked_metrics(run: Path, masks: list[np.ndarray]) -> dict[str, float | None
             "PSNR-outside": float(np.mean(outside)) if outside else None}
 
 
+def mlp_arithmetic_of(run: Path) -> str | None:
+    """The deformation MLP's arithmetic the run trained with (run.json's machine record; None for
+    runs older than that record). `--mlp_precision auto` picks it per CPU, so it belongs beside
+    the figures: two machines can train the same command differently."""
+    record = read_run_record(run) or {}
+    return (record.get("machine") or {}).get("mlp_arithmetic")
+
+
 def summarise(run: Path, masks: list[np.ndarray], scene) -> dict:
     """The figures of one finished run."""
     results = json.loads((run / "results.json").read_text())
@@ -355,7 +364,7 @@ def summarise(run: Path, masks: list[np.ndarray], scene) -> dict:
     row = {"PSNR": results[key]["PSNR"], "SSIM": results[key]["SSIM"], **masked_metrics(run, masks),
            "mask %": 100.0 * float(np.mean([m.mean() for m in masks])) if masks else None,
            "train_s": end[-1].get("wall_seconds") if end else None,
-           "code": json.loads((run / DONE_FILE).read_text()).get("code")}
+           "code": json.loads((run / DONE_FILE).read_text()).get("code"), "MLP": mlp_arithmetic_of(run)}
     if "reflow" in results:
         row["reflow"] = results["reflow"]
         row["canonical_check"] = canonical_check(run, scene)
@@ -379,7 +388,7 @@ def side_by_side(capture: Capture, runs: dict[str, Path], masks: list[np.ndarray
 
 def table(rows: dict[str, dict[str, dict]]) -> str:
     """Markdown: one line per (capture, method)."""
-    fmt = {"SSIM": "{:.3f}", "train_s": "{:.0f}", "mask %": "{:.1f}", "code": "{}"}
+    fmt = {"SSIM": "{:.3f}", "train_s": "{:.0f}", "mask %": "{:.1f}", "code": "{}", "MLP": "{}"}
     lines = ["| capture | method | " + " | ".join(COLUMNS) + " |", "|---|---|" + "---:|" * (len(COLUMNS) - 1) + "---|"]
     for name, methods in rows.items():
         for method, values in methods.items():

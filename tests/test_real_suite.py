@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
+from baselines.run_folder import read_run_record
 from benchmarks import real_captures, real_suite
 from benchmarks.real_captures import CAPTURES, Capture, CaptureError
 
@@ -265,6 +266,9 @@ def test_a_chunked_run_resumes_from_its_checkpoint_and_ends_as_an_uninterrupted_
     assert psnr[1] == pytest.approx(psnr[0], abs=1e-3)
     summary = real_suite.summarise(run, [], None)
     assert summary["train_s"] == pytest.approx(sum(c["seconds"] for c in chunks))
+    # the MLP arithmetic the run trained with (run.json's machine record) is in its table row
+    assert summary["MLP"] == read_run_record(run)["machine"]["mlp_arithmetic"] in ("float32", "bfloat16")
+    assert f"| {summary['MLP']} |" in real_suite.table({"toy": {"baseline": summary}})
 
 
 def test_run_chunked_skips_done_runs_and_stops_when_the_call_s_time_is_spent():

@@ -21,6 +21,7 @@ import torch
 from baselines import thread_policy
 from baselines.cli_exit import flag_value as _flag_value, has_flag as _has_flag
 from baselines.cli_exit import interrupted_line, resume_command, run_cli  # noqa: F401  (train.py, render.py, tests)
+from baselines.machine import training_machine
 from baselines.run_folder import (FolderPlan, RunFolder, RunIdentity, TrainingInterrupted, check_run_folder,
                                   RunLock, check_saved_iteration, check_typed_model_path, default_model_path, require_run_record)
 
@@ -149,6 +150,9 @@ def _load_and_claim(args, folder: RunFolder, source: Path, embedded: bool, plugi
             log.info("plugin %s: components %s", plugin.name, sorted(plugin.enabled) or "none")
         log.info("threads: %s", thread_policy.last_decision)
         trainer = Trainer(args, scene, plugins, model_path)  # e.g. --device cuda without CUDA fails here
+        machine = training_machine(trainer.device, args.pipe.backend, args.hidden.mlp_precision)
+        log.info("machine: %s", ", ".join(f"{k} {v}" for k, v in machine.items()))
+        folder.record_facts(machine=machine)  # mlp_arithmetic differs between CPUs under "auto"
     except BaseException:
         folder.abandon()  # nothing trained yet: the folder goes back to how it was
         raise

@@ -141,10 +141,17 @@ def mlp_autocast(precision: str, device: torch.device) -> torch.autocast:
     the MLP is most of a training step at real-capture scale (about 40% of a fine iteration at
     33k Gaussians, 240x135, docs/PROFILE.md). ``float32`` is 4DGS's arithmetic.
     """
+    use_bf16 = mlp_arithmetic(precision, device) == "bfloat16"
+    return torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16)
+
+
+def mlp_arithmetic(precision: str, device: torch.device) -> str:
+    """What ``mlp_precision`` resolves to on ``device``: "bfloat16" or "float32" (``auto`` depends on
+    the CPU, so a run records the result: baselines/machine.py)."""
     if precision not in ("auto", "float32", "bfloat16"):
         raise ValueError(f"mlp_precision must be auto, float32 or bfloat16, got {precision!r}")
-    use_bf16 = precision == "bfloat16" or (precision == "auto" and device.type == "cpu" and native_bfloat16_cpu())
-    return torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16)
+    native = device.type == "cpu" and native_bfloat16_cpu()
+    return "bfloat16" if precision == "bfloat16" or (precision == "auto" and native) else "float32"
 
 
 def quaternion_multiply(q1: Tensor, q2: Tensor) -> Tensor:
