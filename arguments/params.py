@@ -65,6 +65,14 @@ def _check_positive(value: int) -> str | None:
     return None if value > 0 else f"must be > 0, got {value}"
 
 
+def _check_unsupported(value: bool) -> str | None:
+    return None if not value else "is not supported (a 4DGS experiment labelled useless there); set it to False"
+
+
+def _check_grid_pe(value: int) -> str | None:
+    return None if value == 0 or value > 1 else f"must be 0 (off) or > 1, got {value}"
+
+
 def _check_seed(value: int) -> str | None:
     return None if 0 <= value < 2**32 else f"must be in [0, 2**32 - 1] (numpy's seed range), got {value}"
 
@@ -96,7 +104,8 @@ class ModelParams:
     llffhold: int = param(8, "every llffhold-th frame is a test view (LLFF-style readers)",
                           check=_check_positive)
     # --- ours ---
-    dataset_type: str = param("auto", "dataset reader (auto: chosen from the files present)",
+    dataset_type: str = param("auto", "dataset reader (auto: chosen from the files present; synthetic: "
+                                      "the simulator's scenes, NVIDIA layout, with their family config)",
                               ours=True, choices=DATASET_TYPES)
     force_dataset_points: bool = param(False, "start from the dataset's point file even when the "
                                               "training cameras barely see it (placeholder check)",
@@ -139,8 +148,9 @@ class ModelHiddenParams:
     """Deformation field: HexPlane grid and deformation MLP (4DGS "ModelHiddenParams")."""
 
     net_width: int = param(64, "width of the deformation MLP", check=_check_positive)
-    timebase_pe: int = param(4, "4DGS: time encoding of an unused time network (" +
-                             _COMPAT_4DGS_UNUSED + ")", compat=True)
+    timebase_pe: int = param(4, "4DGS: input encoding of a time network that 4DGS builds and never "
+                                "calls; built here too, so its size changes only the random initial "
+                                "weights drawn after it (as in 4DGS), not what is computed")
     defor_depth: int = param(1, "number of hidden layers of the deformation MLP",
                              check=_check_non_negative)
     posebase_pe: int = param(10, "4DGS: position encoding whose result is discarded (" +
@@ -149,14 +159,16 @@ class ModelHiddenParams:
                                       "(" + _COMPAT_4DGS_UNUSED + ")", compat=True)
     opacity_pe: int = param(2, "4DGS: opacity encoding, unused (" + _COMPAT_4DGS_UNUSED + ")",
                             compat=True)
-    timenet_width: int = param(64, "4DGS: width of an unused time network (" +
-                               _COMPAT_4DGS_UNUSED + ")", compat=True)
-    timenet_output: int = param(32, "4DGS: output width of an unused time network (" +
-                                _COMPAT_4DGS_UNUSED + ")", compat=True)
+    timenet_width: int = param(64, "4DGS: width of the never-called time network (see timebase_pe: "
+                                   "changes only the random initial weights drawn after it)")
+    timenet_output: int = param(32, "4DGS: output width of the never-called time network (see "
+                                    "timebase_pe)")
     bounds: float = param(1.6, "initial half-extent of the HexPlane bounding box (reset from the "
                                "point cloud)")
     plane_tv_weight: float = param(0.0001, "total-variation loss weight of the spatial planes")
-    time_smoothness_weight: float = param(0.01, "smoothness loss weight of the time planes")
+    time_smoothness_weight: float = param(0.01, "smoothness loss weight of the time planes; 0 also "
+                                                "switches off plane_tv_weight and l1_time_planes (as "
+                                                "in 4DGS, the three are one loss computed only then)")
     l1_time_planes: float = param(0.0001, "L1 loss weight pulling the time planes towards 1")
     kplanes_config: dict[str, Any] = param(
         {"grid_dimensions": 2, "input_coordinate_dim": 4, "output_coordinate_dim": 32,
@@ -178,13 +190,16 @@ class ModelHiddenParams:
     no_do: bool = param(True, "disable the deformation of opacities")
     no_dshs: bool = param(True, "disable the deformation of SH colours")
     empty_voxel: bool = param(False, "4DGS experiment (labelled useless there): empty-space "
-                                     "voxel mask", compat=True)
-    grid_pe: int = param(0, "4DGS experiment (labelled useless there): encoding of the grid "
-                            "features", compat=True)
+                                     "voxel mask; not supported (True is refused)",
+                              check=_check_unsupported)
+    grid_pe: int = param(0, "4DGS experiment (labelled useless there), implemented: 0 = off, k > 1 "
+                            "= the grid features f followed by sin(k f) and cos(k f) as the MLP's "
+                            "input", check=_check_grid_pe)
     static_mlp: bool = param(False, "4DGS experiment (labelled useless there): static/dynamic "
-                                    "MLP mask", compat=True)
-    apply_rotation: bool = param(False, "4DGS experiment (labelled useless there): compose "
-                                        "rotation deltas as quaternion products", compat=True)
+                                    "MLP mask; not supported (True is refused)", check=_check_unsupported)
+    apply_rotation: bool = param(False, "4DGS experiment (labelled useless there), implemented: "
+                                        "compose rotation deltas as quaternion products instead of "
+                                        "adding them")
 
 
 @dataclass
@@ -202,13 +217,16 @@ class OptimizationParams:
     position_lr_init: float = param(0.00016, "initial learning rate of positions "
                                              "(times the scene extent)")
     position_lr_final: float = param(0.0000016, "final learning rate of positions")
-    position_lr_delay_mult: float = param(0.01, "warm-up multiplier of the position learning rate")
+    position_lr_delay_mult: float = param(0.01, "4DGS: warm-up multiplier of the position learning "
+                                                "rate; 4DGS sets no warm-up steps, so it has no effect "
+                                                "there or here", compat=True)
     position_lr_max_steps: int = param(20_000, "steps of the position (and deformation) "
                                                "learning-rate decay", check=_check_positive)
     deformation_lr_init: float = param(0.00016, "initial learning rate of the deformation MLP")
     deformation_lr_final: float = param(0.000016, "final learning rate of the deformation MLP")
-    deformation_lr_delay_mult: float = param(0.01, "warm-up multiplier of the deformation "
-                                                   "learning rate")
+    deformation_lr_delay_mult: float = param(0.01, "4DGS: warm-up multiplier of the deformation "
+                                                   "learning rate; no effect (see position_lr_delay_mult)",
+                                             compat=True)
     grid_lr_init: float = param(0.0016, "initial learning rate of the HexPlane grid")
     grid_lr_final: float = param(0.00016, "final learning rate of the HexPlane grid")
     feature_lr: float = param(0.0025, "learning rate of SH colours (rest: / 20)")

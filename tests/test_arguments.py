@@ -107,6 +107,9 @@ def test_list_and_dict_flags():
     (["--device", "gpu"], "cuda:N"),
     (["--iteratons", "5"], "did you mean --iterations"),
     (["--no-evl"], "did you mean --no-eval"),
+    (["--static_mlp"], "argument --static_mlp: is not supported"),      # 4DGS experiments this host does not run
+    (["--empty_voxel"], "argument --empty_voxel: is not supported"),
+    (["--grid_pe", "1"], "must be 0 (off) or > 1, got 1"),  # implemented: refused values only
 ])
 def test_bad_flags_exit_with_a_clear_message(argv, message, capsys):
     with pytest.raises(SystemExit) as exc:
@@ -138,6 +141,15 @@ def test_compat_field_warns_once(tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="arguments"):
         parse_train_args(["--backend", "cpu"])
     assert not caplog.records
+    # flags that change the computation are not called "no effect" (grid_pe and apply_rotation are
+    # implemented; the unused time network's size changes the random initial weights)...
+    with caplog.at_level(logging.WARNING, logger="arguments"):
+        parse_train_args(["--grid_pe", "2", "--apply_rotation", "--timenet_width", "8"])
+    assert not caplog.records
+    # ...and one that 4DGS never applies (no warm-up steps) is
+    with caplog.at_level(logging.WARNING, logger="arguments"):
+        parse_train_args(["--position_lr_delay_mult", "1.0"])
+    assert "OptimizationParams.position_lr_delay_mult" in caplog.records[0].getMessage()
 
 
 # --- plugins ----------------------------------------------------------------------------------
@@ -154,6 +166,9 @@ class FakeFlowParams:
 def test_peek_plugins_forms(tmp_path):
     assert peek_plugins(["-s", "x", "--plugin", "a,b", "--iterations", "3", "--plugin=c"]) == ["a", "b", "c"]
     assert peek_plugins(["-s", "x", "--unknown", "1"]) == []
+    # several names after one flag, as the full parser reads them (each is then loaded and checked)
+    assert peek_plugins(["--plugin", "reflow", "nosuch", "-s", "x"]) == ["reflow", "nosuch"]
+    assert parse_train_args(["--plugin", "a", "b", "-s", "x"]).run.plugin == ["a", "b"]
     cfg = tmp_path / "c.py"
     (tmp_path / "base.py").write_text("RunParams = dict(plugin=['fromfile'])\n")
     cfg.write_text("_base_ = 'base.py'\n")

@@ -42,6 +42,11 @@ def test_ambiguous_folder_prefers_poses_bounds_and_says_so(mixed, caplog):
         {"type": "hypernerf", "files": "dataset.json + scene.json"},
         {"type": "dnerf", "files": "transforms_train.json"}]
     assert load_scene(mixed, dataset_type="dnerf").dataset_type == "dnerf"  # --dataset_type overrides
+    # every listed --dataset_type choice has a reader ("synthetic": the simulator's NVIDIA layout)
+    from arguments.params import DATASET_TYPES
+    from baselines.data.loader import ALIASES, READERS
+    assert all(ALIASES.get(choice, choice) in READERS for choice in DATASET_TYPES if choice != "auto")
+    assert load_scene(mixed, dataset_type="synthetic").dataset_type == "nvidia"
 
 
 def test_unambiguous_folder_gives_no_warning(scene, tmp_path, caplog):

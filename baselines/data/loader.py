@@ -26,7 +26,8 @@ READERS: dict[str, Callable[..., SceneInfo]] = {
     "panoptic": read_panoptic,
 }
 _COMMON_ARGUMENTS = ("source_path", "images", "resolution", "eval", "white_background", "llffhold")
-ALIASES = {"llff": "nvidia", "dynamicnerf": "nvidia", "blender": "dnerf", "nerfies": "hypernerf"}
+# "synthetic": baselines.synthetic writes the NVIDIA layout (its family config is chosen from the name)
+ALIASES = {"llff": "nvidia", "dynamicnerf": "nvidia", "synthetic": "nvidia", "blender": "dnerf", "nerfies": "hypernerf"}
 
 def detect_dataset_type(source_path: Path | str) -> str:
     """The layout of `source_path` (see detection.py for the preference rule)."""
