@@ -203,6 +203,8 @@ class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugi
         return self.is_enabled("separation") and self.p.static_decoder != "field"
 
     def on_stage_start(self, ctx) -> None:
+        # again here: a run continued from a point_cloud folder or a checkpoint builds no initial cloud
+        check_occlusion_mode(self.config.occlusion, self.config.cam_occlusion, self.p.pair_mode)
         means = ctx.model.get_xyz.detach()
         cam = ctx.train_cameras[0]
         z = means @ cam.viewmat[:3, :3].T[:, 2] + cam.viewmat[2, 3]

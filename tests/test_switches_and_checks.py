@@ -45,9 +45,17 @@ def test_occlusion_in_partner_mode_is_one_error_line_before_loading(tiny_scene, 
     assert not (tmp_path / "run" / "point_cloud").exists() and not (tmp_path / "run" / "reflow" / "static.ply").exists()
     # in pair_mode both the switches build and train
     both = base_argv(tiny_scene, tmp_path / "both", 1, 1, "--plugin", "reflow", "--enable", "occlusion,cam_occlusion",
-                     "--pair_mode", "both", "--flow_vis_every", "0")
+                     "--pair_mode", "both", "--flow_vis_every", "0", "--save_iterations", "1")
     summary = train_from_argv(both)
     assert {"occlusion", "cam_occlusion"} <= summary.trainer.hooks.plugins[0].enabled
+    # a run continued from a saved point_cloud folder builds no initial cloud: refused all the same
+    upgrade = base_argv(tiny_scene, tmp_path / "upgrade", 0, 1, "--plugin", "reflow", "--enable", "occlusion",
+                        "--start_checkpoint", str(tmp_path / "both"))
+    with pytest.raises(SystemExit) as stop:
+        run_cli(lambda: train_from_argv(upgrade) and 0)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--enable occlusion needs --pair_mode both" in err[0], err
 
 
 # ------------------------------------------------------------------ 2, 3. the inverse-depth refinement
