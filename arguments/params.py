@@ -324,7 +324,7 @@ class RenderParams:
     skip_train: bool = param(False, "do not render the training views")
     skip_test: bool = param(False, "do not render the test views")
     skip_video: bool = param(False, "do not render the video path")
-    quiet: bool = param(False, "less console output")
+    quiet: bool = param(False, "less console output: warnings and the written folders only")
     configs: list[str] = param([], "config files, applied over the saved configuration")
 
 

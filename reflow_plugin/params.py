@@ -229,8 +229,10 @@ class ReFlowParams:
                                     choices=CANONICAL_PROVIDERS)
     canonical_align: bool = param(True, "global coarse-to-fine alignment of the pointmaps; --no-canonical_align "
                                         "merges the raw per-frame pointmaps (the paper's 'w/o align' ablation)")
-    canonical_clip_len: int = param(25, "frames per clip of the coarse-to-fine alignment (the first of each is "
-                                        "a keyframe; paper: 25-30)", check=_positive)
+    canonical_clip_len: int = param(25, "frames per clip of the pairwise coarse-to-fine alignment (the first of "
+                                        "each is a keyframe; paper: 25-30); not read where the inverse-depth "
+                                        "refinement runs instead (depth provider with sparse points or the "
+                                        "dataset's near/far bounds)", check=_positive)
     canonical_window: int = param(4, "ours: inside a clip, frames at most this far apart are paired (plus "
                                      "every frame with its keyframe)", check=_positive)
     canonical_voxel: float = param(0.01, "voxel side of the fused static cloud as a fraction of the median "
@@ -253,8 +255,8 @@ class ReFlowParams:
                                                   "cloud's median relative depth error against them (per covered "
                                                   "4-px cell) is above this, the dense cloud is not used (the "
                                                   "host's cloud + part 1 seeds); 0 = no limit", check=_non_negative)
-    canonical_iters: int = param(300, "Adam iterations of each alignment (keyframe graph, each clip)",
-                                 check=_non_negative)
+    canonical_iters: int = param(300, "Adam iterations of each pairwise alignment (keyframe graph, each clip); "
+                                      "the inverse-depth refinement runs a fixed 50", check=_non_negative)
     canonical_check: bool = param(True, "check the canonical cloud before training (views, depth against the "
                                         "sparse points or bounds, dynamic spread) and fall back when it fails; "
                                         "--no-canonical_check keeps a failing cloud (with the warning), e.g. to "

@@ -98,3 +98,14 @@ def test_run_config_records_the_layout_choice(mixed, tmp_path):
     saved = json.loads((tmp_path / "run" / "config.json").read_text())
     assert saved["_dataset_layout"]["picked"] == "nvidia"
     assert {m["type"] for m in saved["_dataset_layout"]["also_matched"]} == {"dnerf", "hypernerf"}
+
+
+def test_arguments_a_reader_does_not_read_are_warned_about(mixed, caplog):
+    with caplog.at_level(logging.WARNING, logger="baselines.data"):
+        load_scene(mixed, dataset_type="dnerf", llffhold=4)
+    assert [r.getMessage() for r in caplog.records if "not read" in r.getMessage()] == [
+        "--llffhold 4 is not read by the dnerf reader (its layout fixes it)"]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="baselines.data"):
+        load_scene(mixed, dataset_type="nvidia", llffhold=4, eval=True)  # nvidia holds out every 4th frame
+    assert not [r for r in caplog.records if "not read" in r.getMessage()]

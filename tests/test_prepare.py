@@ -335,6 +335,10 @@ def test_pose_errors_see_a_wrong_camera():
 
 def test_frame_selection_and_times():
     assert select_frames(10, 30.0, 10.0, None) == [0, 3, 6, 9]
+    # --fps is an upper limit: 25 of 30 fps keeps every 2nd frame (15 fps), 12 keeps every 3rd (10 fps)
+    assert select_frames(10, 30.0, 25.0, None) == [0, 2, 4, 6, 8]
+    assert select_frames(10, 30.0, 12.0, None) == [0, 3, 6, 9]
+    assert select_frames(10, 29.97, 29.97, None) == list(range(10))
     assert select_frames(100, None, None, 5) == [0, 25, 50, 74, 99]
     assert frame_times(["00000.png", "00003.png", "00006.png"]) == {"00000.png": 0.0, "00003.png": 0.5, "00006.png": 1.0}
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import errno
 import json
+import logging
 import os
 import shlex
 import shutil
@@ -36,7 +37,7 @@ def _train(scene, out, *extra, coarse=3, fine=3):
     return train_from_argv(base_argv(scene, out, coarse, fine, *FAST_RUN, *extra))
 
 
-def test_a_folder_holding_a_run_is_refused_before_any_work(tiny_scene, tmp_path, toy_plugin):  # noqa: F811
+def test_a_folder_holding_a_run_is_refused_before_any_work(tiny_scene, tmp_path, toy_plugin, caplog):  # noqa: F811
     run = tmp_path / "run"
     _train(tiny_scene, run)
     assert read_run_record(run)["state"] == "finished"
@@ -69,8 +70,15 @@ def test_a_folder_holding_a_run_is_refused_before_any_work(tiny_scene, tmp_path,
     shutil.copytree(run / "point_cloud" / "iteration_4", run / "point_cloud" / "iteration_99")
     with pytest.raises(RunFolderError, match="iteration_99 was not saved by the run"):
         render_from_argv(["-m", str(run), "--skip_video"])
-    written = render_from_argv(["-m", str(run), "--iteration", "4", "--skip_video"])
+    with caplog.at_level(logging.INFO):
+        written = render_from_argv(["-m", str(run), "--iteration", "4", "--skip_video"])
     assert written["train"].name == "ours_4"
+    assert any(r.levelno == logging.INFO for r in caplog.records)
+    caplog.clear()
+    with caplog.at_level(logging.INFO):  # render.py's own --quiet, whatever the training run saved
+        render_from_argv(["-m", str(run), "--iteration", "4", "--skip_video", "--quiet"])
+        assert logging.getLogger().level == logging.INFO  # the caller's level is restored
+    assert not [r.getMessage() for r in caplog.records if r.levelno < logging.WARNING]
 
 
 def test_resume_must_match_the_checkpoints_plugins(tiny_scene, tmp_path, toy_plugin):  # noqa: F811

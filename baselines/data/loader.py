@@ -26,6 +26,12 @@ READERS: dict[str, Callable[..., SceneInfo]] = {
     "panoptic": read_panoptic,
 }
 _COMMON_ARGUMENTS = ("source_path", "images", "resolution", "eval", "white_background", "llffhold")
+# Common arguments a reader does not read (its layout fixes them): a value the user changed is
+# warned about instead of silently dropped. HyperNeRF always uses the dataset's own split.
+IGNORED_ARGUMENTS = {"hypernerf": ("images", "eval", "llffhold"), "dnerf": ("images", "llffhold"),
+                     "panoptic": ("images", "llffhold")}
+_ARGUMENT_FLAGS = {"images": ("-i/--images", "images"), "llffhold": ("--llffhold", 8)}
+
 # "synthetic": baselines.synthetic writes the NVIDIA layout (its family config is chosen from the name)
 ALIASES = {"llff": "nvidia", "dynamicnerf": "nvidia", "synthetic": "nvidia", "blender": "dnerf", "nerfies": "hypernerf"}
 
@@ -86,6 +92,10 @@ def load_scene(source_path: Path | str, dataset_type: str | None = "auto", image
                            f"(it accepts: {', '.join(sorted(accepted)) or 'none'})")
     if kind != "nvidia" and (source / POSES_FILE).is_file():
         check_poses_bounds(source, images)  # a NaN there must not pass unnoticed, whatever reads the folder
+    for name, value in (("images", images), ("llffhold", llffhold)):
+        flag, default = _ARGUMENT_FLAGS[name]
+        if name in IGNORED_ARGUMENTS.get(kind, ()) and value != default:
+            log.warning("%s %s is not read by the %s reader (its layout fixes it)", flag, value, kind)
     scene = reader(source, images=images, resolution=resolution, eval=eval,
                    white_background=white_background, llffhold=llffhold, **options)
     chosen = detection.as_dict() if detection else {"picked": kind, "because": "--dataset_type"}

@@ -108,6 +108,7 @@ def _load_and_claim(args, folder: RunFolder, source: Path, embedded: bool, plugi
     """build_trainer's second half, under the folder's lock: load the dataset, commit the folder."""
     from arguments import write_cfg_args
     from baselines.data import load_scene
+    from baselines.data.loader import IGNORED_ARGUMENTS
     from baselines.data.errors import EmptySplitError
 
     source = embedded_scene_path() if embedded else source
@@ -133,8 +134,9 @@ def _load_and_claim(args, folder: RunFolder, source: Path, embedded: bool, plugi
     except EmptySplitError as err:
         raise EmptySplitError(f"{err}{_frame_needs(plugins, 0, prefix='; ')}") from None
     if len(scene.train_cameras) < max([1] + [p.min_train_frames()[0] for p in plugins]):
+        honours_eval = "eval" not in IGNORED_ARGUMENTS.get(scene.dataset_type, ())  # HyperNeRF: fixed split
         held = (f"; --no-eval trains on the {len(scene.test_cameras)} held-out frame(s) too"
-                if scene.test_cameras else "")
+                if scene.test_cameras and honours_eval else "")
         raise ValueError(f"{source}: {len(scene.train_cameras)} training frame(s)"
                          f"{_frame_needs(plugins, len(scene.train_cameras))}{held}")
     if decision is not None and decision.path is not None:
@@ -370,13 +372,21 @@ def render_from_argv(argv: list[str]) -> dict[str, Path]:
     toggles are restored from the model directory's saved configuration.
     """
     logging.basicConfig(level=logging.INFO, format="[%(name)s] %(message)s")
-    loaded = load_run(argv)
-    lock = RunLock(loaded.trainer.ctx.model_path).acquire()  # no training or other render writes here meanwhile
+    root = logging.getLogger()
+    level = root.level
+    if _has_flag(argv, "--quiet"):  # this command's own flag, not the training run's saved `quiet`
+        root.setLevel(logging.WARNING)  # warnings and the written folders only
     try:
-        return _render_locked(loaded)
+        loaded = load_run(argv)
+        loaded.trainer.run_log.quiet = loaded.trainer.run_log.quiet or loaded.args.render.quiet
+        lock = RunLock(loaded.trainer.ctx.model_path).acquire()  # no training or other render writes here meanwhile
+        try:
+            return _render_locked(loaded)
+        finally:
+            loaded.trainer.run_log.close()
+            lock.release()
     finally:
-        loaded.trainer.run_log.close()
-        lock.release()
+        root.setLevel(level)
 
 
 def _render_locked(loaded: LoadedRun) -> dict[str, Path]:

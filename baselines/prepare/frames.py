@@ -12,6 +12,8 @@ in the SOURCE sequence, so names order frames in time and say where each came fr
 """
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -88,7 +90,8 @@ def select_frames(count: int, source_fps: float | None, fps: float | None, max_f
     """Indices of the source frames to keep (see the module docstring)."""
     stride = 1
     if fps is not None and source_fps:
-        stride = max(1, int(round(source_fps / fps)))
+        # the smallest stride whose rate is at most fps (1e-6: 30 / 10 must stay 3 after rounding)
+        stride = max(1, math.ceil(source_fps / fps - 1e-6))
     indices = list(range(0, count, stride))
     if max_frames is not None and len(indices) > max_frames:
         picks = np.linspace(0, len(indices) - 1, max_frames).round().astype(int)
