@@ -16,6 +16,11 @@ blocks of different frames differ by more than most changes. The switch is read 
 variant (wall time and the process's CPU time), the ReFlow / baseline ratio with the switch off and
 on, and on / off per trainer; asserts nothing. A switch the baseline never reads gives it two samples of one variant (a noise check).
 
+`--densify-statistic` measures the iterations while densification runs (every iteration until
+`densify_until_iter`): the densification statistic is gathered (ReFlow's extra backward of the
+reconstruction losses, `Trainer._baseline_screen_grads`) but no clone, split, prune or opacity
+reset happens, so the count stays fixed. `REFLOW4DGS_ACTIVE_CHANNELS` is measured this way.
+
 Layout switches are read when the rows are rewritten, not per call: for `REFLOW4DGS_ROW_ORDER` both
 trainers are prepared with it off (rows in the order the run made them: ReFlow's initial cloud, the
 baseline's resampled one), and each block puts a trainer's rows in that order ("off") or in
@@ -61,6 +66,14 @@ class RowOrderLayout:
         order = self.to_sorted[label] if setting == "on" else torch.argsort(self.to_sorted[label])
         self.trainers[label].ctx.model.permute_rows(order)
         self.current[label] = setting
+
+
+def gather_densification_statistic(trainer) -> None:
+    """Make every following iteration gather the densification statistic (as while densifying)
+    without densifying, pruning or resetting opacities, so the Gaussian count stays fixed."""
+    never = 10**9
+    trainer.opt.densify_until_iter = never
+    trainer.opt.densify_from_iter = trainer.opt.pruning_from_iter = trainer.opt.opacity_reset_interval = never
 
 
 def _samplers(trainer) -> list:
@@ -122,6 +135,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--switch", required=True, help="environment variable whose 0 turns the change off")
     parser.add_argument("--iters", type=int, default=2, help="timed iterations per block")
     parser.add_argument("--rounds", type=int, default=4, help="blocks per variant")
+    parser.add_argument("--densify-statistic", action="store_true",
+                        help="gather the densification statistic every iteration (nothing is densified or pruned)")
     args = parser.parse_args(argv)
     if args.iters < 1 or args.rounds < 1:
         parser.error("--iters and --rounds must be >= 1")
@@ -131,7 +146,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from benchmarks.profile_step import _prepare, _step, baseline_argv
 
-    print(f"# switch_ab {args.switch}: {policy}, {cpu_model()}, load {load_average()}")
+    statistic = ", densification statistic gathered" if args.densify_statistic else ""
+    print(f"# switch_ab {args.switch}{statistic}: {policy}, {cpu_model()}, load {load_average()}")
     is_layout = args.switch == ROW_ORDER_SWITCH
     saved = os.environ.get(args.switch)
     if is_layout:
@@ -146,6 +162,8 @@ def main(argv: list[str] | None = None) -> int:
         elif is_layout:
             os.environ[args.switch] = saved
     for trainer in trainers.values():
+        if args.densify_statistic:
+            gather_densification_statistic(trainer)
         _step(trainer, 3)  # allocator and caches warm
     layout = RowOrderLayout(trainers) if is_layout else None
     wall, cpu, paired = interleaved(trainers, args.switch, args.iters, args.rounds, layout)

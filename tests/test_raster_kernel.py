@@ -92,6 +92,41 @@ def test_avx2_and_portable_variants_are_bitwise_identical(compiled, monkeypatch,
         assert torch.equal(value, runs["avx2"][key]), f"{key} differs between the portable and AVX2 variants"
 
 
+def _colour_loss_grads(scene, read: slice) -> dict[str, torch.Tensor]:
+    """Gradients of a loss that reads the channels `read` of the image (and the alpha map), the
+    densification statistic's pass beside a plugin's channels."""
+    scene = scene.to(scene.means.dtype).requires_grad_()
+    proj = project(scene)
+    proj.means2d.retain_grad()
+    proj.conics.retain_grad()
+    image, alpha = kernel.composite_kernel(proj, scene.opacities, scene.features, scene.width, scene.height)
+    weights = torch.linspace(-1.0, 2.0, image[..., read].numel()).reshape(image[..., read].shape)
+    ((image[..., read] * weights).sum() + (alpha * alpha).sum()).backward()
+    out = {"means2d": proj.means2d.grad, "conics": proj.conics.grad}
+    out.update({k: v.grad for k, v in scene.gaussian_tensors.items()})
+    return out
+
+
+@pytest.mark.parametrize("read", [slice(0, 3), slice(0, 0), slice(2, 3), slice(0, 8)], ids=["colours", "alpha only",
+                                                                                           "one channel", "all"])
+def test_channels_without_upstream_gradient_are_left_out_exactly(compiled, monkeypatch, read):
+    # A trailing channel whose upstream gradient is zero contributes exact zeros to every sum the
+    # backward forms: leaving it out must give bitwise the same gradients, its own being zero.
+    scene = random_scene(3000, 96, 64, channels=8, seed=4, pixel_sigma=(1.0, 6.0))
+    image = torch.zeros(64, 96, 8)
+    image[..., read] = 1.0
+    expected = max(1, read.stop)
+    assert kernel.active_channels(image) == expected
+    monkeypatch.setenv(kernel.ENV_ACTIVE_CHANNELS, "0")
+    every = _colour_loss_grads(scene, read)
+    monkeypatch.delenv(kernel.ENV_ACTIVE_CHANNELS)
+    active = _colour_loss_grads(scene, read)
+    for key, value in every.items():
+        assert torch.equal(value, active[key]), f"{key} differs when zero-gradient channels are left out"
+    assert not active["features"][:, expected:].any()
+    assert active["means2d"].abs().sum() > 0
+
+
 def test_isa_switch_is_validated_and_float64_runs_portable(compiled, monkeypatch):
     monkeypatch.setenv(kernel.ENV_ISA, "avx512")
     with pytest.raises(ValueError, match=kernel.ENV_ISA):

@@ -19,6 +19,8 @@ Switches: `REFLOW4DGS_CPU_KERNEL=0` (or false/off/no) makes the cpu backend use 
 path. Without a compiler, or when the build fails, `kernel_available()` returns (False, reason)
 and the cpu backend falls back likewise, logging the reason once. `REFLOW4DGS_KERNEL_ISA=portable`
 (or avx2; default auto) forces a variant of the pixel loops, for tests and comparisons.
+`REFLOW4DGS_ACTIVE_CHANNELS=0` makes the backward pass process every channel, also trailing ones
+whose upstream gradient is zero (by default they are left out: same gradients, less work).
 
 Dtypes: float32 and float64 both run compiled (the kernel is templated on the scalar type);
 bfloat16 and non-CPU tensors take the torch tiled path (float16 is rejected by validation).
@@ -44,6 +46,7 @@ logger = logging.getLogger(__name__)
 
 ENV_SWITCH = "REFLOW4DGS_CPU_KERNEL"
 ENV_ISA = "REFLOW4DGS_KERNEL_ISA"
+ENV_ACTIVE_CHANNELS = "REFLOW4DGS_ACTIVE_CHANNELS"  # 0/false/off/no: the backward runs every channel
 # Instruction-set variants of the kernel's pixel loops (the `isa` argument of its entry points).
 ISA_CODES = {"auto": 0, "portable": 1, "avx2": 2}
 SOURCE = Path(__file__).resolve().parent / "csrc" / "raster_kernel.cpp"
@@ -169,23 +172,43 @@ class _CompositeKernel(torch.autograd.Function):
         lib = load_library()
         suffix = _SUPPORTED_DTYPES[features.dtype]
         n, channels = features.shape
-        grad_image = grad_image.to(features.dtype).contiguous()
+        grad_image = grad_image.to(features.dtype)
         grad_alpha = grad_alpha.to(features.dtype).contiguous()
+        # Trailing channels with an all-zero upstream gradient add nothing to any gradient but their
+        # own (zero) feature gradient: leave them out of the kernel's per-pair work. A loss that
+        # reads the colours only (the densification statistic's pass beside a plugin's channels)
+        # then costs what the colours alone cost.
+        off = native_build.switched_off_by_env("leaving out zero-gradient channels", ENV_ACTIVE_CHANNELS)
+        active = channels if off is not None else active_channels(grad_image)
+        g_features = torch.zeros_like(features) if active < channels else torch.empty_like(features)
+        if active < channels:
+            features = features[:, :active].contiguous()
+            grad_image = grad_image[..., :active]
+        grad_image = grad_image.contiguous()
         # The kernel writes every entry (zero for Gaussians that touch no pixel).
         g_means2d = torch.empty_like(means2d)
         g_conics = torch.empty_like(conics)
         g_opacities = torch.empty_like(opacities)
-        g_features = torch.empty_like(features)
+        g_active = g_features if active == channels else torch.empty_like(features)
         status = getattr(lib, f"rk_backward_{suffix}")(
-            _ptr(means2d), _ptr(conics), _ptr(opacities), _ptr(features), _ptr(radii), n, channels,
+            _ptr(means2d), _ptr(conics), _ptr(opacities), _ptr(features), _ptr(radii), n, active,
             _ptr(offsets), _ptr(gaussian_ids), width, height, tile_size, num_threads, isa,
             _ptr(transmittance), _ptr(last), _ptr(grad_image), _ptr(grad_alpha),
-            _ptr(g_means2d), _ptr(g_conics), _ptr(g_opacities), _ptr(g_features),
+            _ptr(g_means2d), _ptr(g_conics), _ptr(g_opacities), _ptr(g_active),
         )
         _check_status(status, "backward")
+        if active < channels:
+            g_features[:, :active] = g_active
         needs = ctx.needs_input_grad
         grads = (g_means2d, g_conics, g_opacities, g_features)
         return tuple(g if needs[i] else None for i, g in enumerate(grads)) + (None,) * 8
+
+
+def active_channels(grad_image: Tensor) -> int:
+    """The channels the backward pass must process: all up to the last one whose upstream gradient
+    [H, W, C] has a non-zero entry (at least 1, the kernel's minimum)."""
+    nonzero = grad_image.ne(0).flatten(0, -2).any(dim=0).nonzero()
+    return max(1, int(nonzero[-1]) + 1) if nonzero.numel() else 1
 
 
 def _check_status(status: int, stage: str) -> None:
