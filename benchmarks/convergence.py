@@ -2,7 +2,8 @@
 
     python benchmarks/convergence.py [--captures nvidia_balloon1,panoptic_basketball]
                                      [--methods baseline,reflow] [--budgets 1000,3000,7000,14000]
-                                     [--coarse_iterations 3000] [--resolution nvidia_balloon1=8,...]
+                                     [--coarse_iterations 3000] [--downscale K]
+                                     [--resolution nvidia_balloon1=8,...]
                                      [--data data/real] [--out output/convergence] [--seed 0]
                                      [--plot PNG] [--report-only]
                                      [--jobs 1] [--chunk-seconds S] [--images DIR]
@@ -33,6 +34,11 @@ stage; note the coarse stage reads the same densification fields, with its own i
 `stall_iterations` (a failure guard), `batch_size`, the thresholds. ReFlow's own schedule is in
 fractions of the fine stage (`dynamic_settle_fraction`, `curriculum_fraction`) and scales by
 itself. The exact flags of each run are in its `real_done.json` and in the JSON written here.
+
+Resolution: each capture's registry resolution (`train.py -r`, the real-capture benchmark's), times
+`--downscale K` (default 1), except where `--resolution NAME=R` names it. `--downscale 2` trains
+every capture at half the benchmark's image size: about 160 pixels across (Balloon1 120x68,
+basketball 160x90, the prepared DAVIS clips 160x90), the study's CPU size.
 
 Writes `OUT/convergence.json` (schedule, flags and figures per run), `OUT/convergence.md` (one
 table: PSNR all / inside the true masks / outside, SSIM, Gaussians at the end, wall seconds) and a
@@ -85,6 +91,20 @@ def scaled_schedule(budget: int) -> dict[str, int]:
 def schedule_flags(budget: int) -> list[str]:
     """train.py flags of the scaled schedule."""
     return [item for name, value in scaled_schedule(budget).items() for item in (f"--{name}", str(value))]
+
+
+def with_resolutions(captures: list[Capture], downscale: int, named: str | None) -> list[Capture]:
+    """The captures with train.py's -r set: the registry's times `downscale`, or what `named`
+    (`--resolution NAME=R,...`) gives for a capture.
+
+    Raises:
+        CaptureError: a factor below 1, or a malformed `named`.
+    """
+    if downscale < 1:
+        raise CaptureError(f"--downscale {downscale}: want a factor >= 1")
+    scaled = [dataclasses.replace(c, resolution=c.resolution * downscale) for c in captures]
+    resolutions = real_suite.parse_resolutions(named, scaled)
+    return [dataclasses.replace(c, resolution=resolutions[c.name]) for c in scaled]
 
 
 def run_folder(out: Path, capture: str, method: str, budget: int) -> Path:
@@ -166,7 +186,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--methods", default=",".join(real_suite.DEFAULT_METHODS))
     parser.add_argument("--budgets", default=",".join(map(str, DEFAULT_BUDGETS)), help="comma list of fine iterations")
     parser.add_argument("--coarse_iterations", type=int, default=3000, help="the same for every budget")
-    parser.add_argument("--resolution", help="NAME=R,... train.py -r per capture (default: the registry's)")
+    parser.add_argument("--downscale", type=int, default=1, metavar="K",
+                        help="train.py -r = the registry's resolution times K (default 1)")
+    parser.add_argument("--resolution", help="NAME=R,... train.py -r per capture (wins over --downscale)")
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--out", type=Path, default=ROOT / "output" / "convergence")
     parser.add_argument("--plot", type=Path, default=None,
@@ -199,8 +221,7 @@ def main(argv: list[str] | None = None) -> int:
             raise CaptureError(f"--budgets {args.budgets!r}: want a comma list of whole numbers") from None
         if not budgets or budgets[0] < 1:
             raise CaptureError(f"--budgets {args.budgets!r}: want fine iterations >= 1")
-        resolutions = real_suite.parse_resolutions(args.resolution, captures)
-        captures = [dataclasses.replace(c, resolution=resolutions[c.name]) for c in captures]
+        captures = with_resolutions(captures, args.downscale, args.resolution)
         require_ready(captures, args.data)
     except CaptureError as error:
         print(f"error: {error}", file=sys.stderr)

@@ -133,7 +133,7 @@ def test_plot_has_one_panel_per_capture(tmp_path):
 
 def test_bad_budgets_and_resolutions_are_one_line_errors(tmp_path, capsys):
     for argv in (["--budgets", "1k"], ["--budgets", "0,100"], ["--resolution", "nope=2"],
-                 ["--resolution", "nvidia_balloon1=x"], ["--jobs", "0"]):
+                 ["--resolution", "nvidia_balloon1=x"], ["--jobs", "0"], ["--downscale", "0"]):
         assert convergence.main([*argv, "--data", str(tmp_path), "--out", str(tmp_path / "out")]) == 2
         err = capsys.readouterr().err
         assert err.startswith("error: ") and err.count("\n") == 1, err
@@ -142,3 +142,13 @@ def test_bad_budgets_and_resolutions_are_one_line_errors(tmp_path, capsys):
         real_suite.parse_resolutions("nvidia_balloon1=0", [CAPTURES["nvidia_balloon1"]])
     assert real_suite.parse_resolutions("panoptic_basketball=4,nvidia_balloon1=8",
                                          [CAPTURES["nvidia_balloon1"]]) == {"nvidia_balloon1": 8}
+
+
+def test_downscale_multiplies_the_registry_resolution_and_a_named_one_wins():
+    captures = [CAPTURES["nvidia_balloon1"], CAPTURES["panoptic_basketball"], CAPTURES["davis_dog"]]
+    chosen = {c.name: c.resolution for c in convergence.with_resolutions(captures, 2, "davis_dog=3")}
+    assert chosen == {"nvidia_balloon1": 2 * CAPTURES["nvidia_balloon1"].resolution,
+                      "panoptic_basketball": 2 * CAPTURES["panoptic_basketball"].resolution, "davis_dog": 3}
+    assert [c.resolution for c in convergence.with_resolutions(captures, 1, None)] == [c.resolution for c in captures]
+    with pytest.raises(CaptureError):
+        convergence.with_resolutions(captures, 0, None)
