@@ -24,6 +24,8 @@ from baselines.data.colmap_compat import read_reconstruction
 from baselines.prepare.dataset import MEDIAN_DEPTH, frame_times, median_point_depth
 from baselines.prepare.evaluate import compare_with_truth, pose_errors, umeyama
 from baselines.prepare.frames import select_frames
+from baselines.prepare.report import _mapper_line
+from baselines.prepare.sfm import PATH_JUMP_FACTOR, continuous_stretch, path_breaks
 from benchmarks.prepare_synthetic import render_clip, run_prepare
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -242,6 +244,36 @@ def test_unregistered_frame_is_dropped_and_times_stay(clip, tmp_path):
     expected = [i / (FRAMES - 1) for i in range(FRAMES) if i != 7]
     assert np.allclose(times, expected, atol=1e-6)
     assert not (dataset / "images" / "00007.png").exists()
+
+
+def test_path_breaks_are_steps_far_above_the_median_step():
+    smooth = np.cumsum(np.random.default_rng(1).uniform(0.5, 4.0, (30, 3)), axis=0)  # speed varies 8x
+    assert path_breaks(smooth) == []
+    jumped = smooth.copy()
+    jumped[10:] += np.array([0.0, 0.0, 3.0 * PATH_JUMP_FACTOR * np.linalg.norm(np.diff(smooth, axis=0), axis=1).max()])
+    assert path_breaks(jumped) == [9]
+    assert path_breaks(smooth[:2] * 1e6) == [] and path_breaks(np.zeros((5, 3))) == []  # too short; no motion
+
+
+def test_frames_off_the_camera_path_are_dropped(prepared):
+    # GLOMAP registered every frame of DAVIS goat and motocross-jump and placed some of them far
+    # off the path; the longest continuous stretch is what stays.
+    import pycolmap
+
+    model = pycolmap.Reconstruction(str(prepared[0] / "sparse" / "0"))
+    images = sorted((model.image(i) for i in model.reg_image_ids()), key=lambda image: image.name)
+    assert continuous_stretch(model)[1:] == ([], 0)                        # the clip's own path is smooth
+    points = model.num_points3D()
+    for k in (0, 2, 4):  # frames 0, 2 and 4 thrown far off: steps 0-1 ... 4-5 all jump
+        frame = model.frame(images[k].frame_id)
+        pose = frame.rig_from_world
+        frame.rig_from_world = pycolmap.Rigid3d(pose.rotation, pose.translation + np.array([0.0, 0.0, 40.0 * (k + 1)]))
+    kept, dropped, breaks = continuous_stretch(model)
+    assert breaks == 5 and dropped == [image.name for image in images[:5]]
+    assert kept.num_reg_images() == len(images) - 5 and 0 < kept.num_points3D() <= points
+    line = _mapper_line({"used": "global", "incremental": [3, 0.4], "global": [len(images) - 5, 0.3],
+                         "path_breaks": {"incremental": 0, "global": breaks}, "off_path": dropped})
+    assert "(longest continuous path; 5 jumps)" in line and line.endswith("5 frames off the camera path dropped")
 
 
 # --- failures: one line, exit code 2 ----------------------------------------------------------

@@ -25,8 +25,8 @@ from .frames import extract_frames, probe_source
 from .masks import colmap_mask, motion_masks
 from .parallax import explain_failure, measure_parallax, require_camera_motion
 from .report import model_statistics, summary_lines, write_report
-from .sfm import (CAMERA_MODELS, SfmOptions, better_model, extract_features, global_map_frames, map_frames,
-                  match_frames, model_quality, read_model)
+from .sfm import (CAMERA_MODELS, PATH_JUMP_FACTOR, SfmOptions, better_model, continuous_stretch, extract_features,
+                  global_map_frames, map_frames, match_frames, model_quality, read_model)
 
 WORK_DIR = ".prepare"
 MIN_REGISTERED = 3  # fewer registered frames, or fewer 3D points, is a failed reconstruction
@@ -115,8 +115,10 @@ def _sfm_stages(options: PrepareOptions, cache: StageCache, masks_key: str, name
     pycolmap writes every incremental model to `models/<k>`; when the largest registers fewer
     than GLOBAL_FALLBACK_FRACTION of the frames, the global mapper runs on the same database
     (`global_models/<k>`) and the better model (`sfm.better_model`) is kept as `models/best`.
+    Each model is first reduced to its longest continuous camera path (`sfm.continuous_stretch`).
     Mapper info: {"used": "incremental" | "global", "incremental": [frames, error px],
-    "global": [frames, error px] or None when it did not run}.
+    "global": [frames, error px] or None when it did not run, "path_breaks": {mapper: breaks
+    found}, "off_path": the kept model's frames deregistered for lying off the path}.
     """
     database, models_dir, frame_dir = work / "database.db", work / "models", work / "frames"
     sfm = options.sfm
@@ -131,19 +133,23 @@ def _sfm_stages(options: PrepareOptions, cache: StageCache, masks_key: str, name
     else:
         verified = match_frames(database, sfm, options.progress)
         cache.finish("matches", matches_key, {"verified_pairs": verified})
-    mapping_key = cache.key(matches_key, sfm.as_dict(), GLOBAL_FALLBACK_FRACTION)
+    mapping_key = cache.key(matches_key, sfm.as_dict(), GLOBAL_FALLBACK_FRACTION, PATH_JUMP_FACTOR)
     best_dir = models_dir / BEST_MODEL
     if cache.done("mapping", mapping_key) and best_dir.is_dir():
         return read_model(best_dir), verified, cache.extra("mapping")
     shutil.rmtree(models_dir, ignore_errors=True)
     shutil.rmtree(work / GLOBAL_MODELS, ignore_errors=True)
-    model = map_frames(database, frame_dir, models_dir, len(names), sfm, options.progress)
-    mapper = {"used": "incremental", "incremental": list(model_quality(model)), "global": None}
+    model, off_path, breaks = continuous_stretch(map_frames(database, frame_dir, models_dir, len(names), sfm,
+                                                            options.progress))
+    mapper = {"used": "incremental", "incremental": list(model_quality(model)), "global": None,
+              "path_breaks": {"incremental": breaks}, "off_path": off_path}
     if model_quality(model)[0] < GLOBAL_FALLBACK_FRACTION * len(names):
-        other = global_map_frames(database, frame_dir, work / GLOBAL_MODELS, sfm, options.progress)
+        other, other_off_path, breaks = continuous_stretch(
+            global_map_frames(database, frame_dir, work / GLOBAL_MODELS, sfm, options.progress))
         mapper["global"] = list(model_quality(other))
+        mapper["path_breaks"]["global"] = breaks
         if better_model(model, other):
-            model, mapper["used"] = other, "global"
+            model, mapper["used"], mapper["off_path"] = other, "global", other_off_path
     if model is not None:
         best_dir.mkdir(parents=True)
         model.write(str(best_dir))
@@ -177,8 +183,8 @@ def _posed_masks_stage(options: PrepareOptions, cache: StageCache, key: str, out
     return entry
 
 
-def _dropped(names: list[str], registered: set[str], models_dir: Path) -> list[dict]:
-    """Each unregistered frame with the reason."""
+def _dropped(names: list[str], registered: set[str], models_dir: Path, off_path: list[str] = ()) -> list[dict]:
+    """Each unregistered frame with the reason (`off_path`: registered, then dropped off the camera path)."""
     elsewhere: dict[str, int] = {}
     for folder in sorted(p for p in models_dir.iterdir() if p.is_dir() and p.name != BEST_MODEL):
         try:
@@ -191,7 +197,9 @@ def _dropped(names: list[str], registered: set[str], models_dir: Path) -> list[d
     for name in names:
         if name in registered:
             continue
-        reason = (f"registered only in a separate smaller model ({elsewhere[name]} frames)" if name in elsewhere
+        reason = (f"off the camera path (outside its longest stretch without a jump of over {PATH_JUMP_FACTOR:g} "
+                  "median steps)" if name in off_path else
+                  f"registered only in a separate smaller model ({elsewhere[name]} frames)" if name in elsewhere
                   else "not registered: too few matches with the reconstruction")
         dropped.append({"frame": name, "reason": reason})
     return dropped
@@ -246,7 +254,7 @@ def prepare(options: PrepareOptions) -> dict:
         "extracted_frames": len(names), "frame_size": list(images[0].shape[1::-1]),
         **model_statistics(model),
         "registered": registered, "scale_applied": scale, "median_point_depth": MEDIAN_DEPTH,
-        "dropped": _dropped(names, set(registered), work / "models"),
+        "dropped": _dropped(names, set(registered), work / "models", mapper.get("off_path", [])),
         "times": {n: times[n] for n in registered},
         "verified_pairs": verified, "mapper": mapper, "masks": mask_info, "parallax": parallax.as_dict(),
         "options": {"fps": options.fps, "max_frames": options.max_frames, "size": options.width,

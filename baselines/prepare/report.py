@@ -32,11 +32,15 @@ def _mapper_line(mapper: dict | None) -> str:
     if not mapper:
         return "incremental"
     parts = [f"{mapper['used']} kept"]
+    breaks = mapper.get("path_breaks", {})
     for name in ("incremental", "global"):
         if mapper.get(name) is not None:
             frames, error = mapper[name]
-            parts.append(f"{name} {frames} frames" + (f" at {error:.3f} px" if frames else ""))
-    return "; ".join(parts) if mapper.get("global") is not None else f"{mapper['used']} ({parts[1]})"
+            parts.append(f"{name} {frames} frames" + (f" at {error:.3f} px" if frames else "")
+                         + (f" (longest continuous path; {breaks[name]} jumps)" if breaks.get(name) else ""))
+    line = "; ".join(parts) if mapper.get("global") is not None else f"{mapper['used']} ({parts[1]})"
+    off_path = mapper.get("off_path") or []
+    return line + (f"; {len(off_path)} frames off the camera path dropped" if off_path else "")
 
 
 def _masks_line(masks: dict) -> str:
