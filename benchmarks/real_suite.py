@@ -381,7 +381,7 @@ def side_by_side(capture: Capture, runs: dict[str, Path], masks: list[np.ndarray
     views = sorted(np.argsort([-m.sum() for m in masks], kind="stable")[:2].tolist())
     width = masks[0].shape[1]
     output = images / f"real_{capture.name}.jpg"
-    tool.main([*(str(r) for r in runs.values()), "--views", *map(str, views),
+    tool.main([*(str(r) for r in runs.values()), "--views", *map(str, views), "--labels", *runs,
                "--scale", str(max(1, math.ceil(320 / width))), "-o", str(output)])
     return output
 

@@ -4,7 +4,7 @@
         --views 1 3 --scale 3 -o docs/images/skating_test.png
 
 Reads `<run>/test/ours_<N>/renders` (the latest iteration of each run) and the first run's `gt`.
-Rows are views, columns ground truth then the runs, labelled with the folder name and the view's
+Rows are views, columns ground truth then the runs, labelled with the folder name (or `--labels`) and the view's
 PSNR (and PSNR-dynamic when `per_view.json` has it).
 """
 from __future__ import annotations
@@ -49,7 +49,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--views", nargs="+", type=int, default=[0])
     parser.add_argument("--scale", type=int, default=2, help="nearest-neighbour upscaling for readability")
     parser.add_argument("-o", "--output", type=Path, required=True)
+    parser.add_argument("--labels", nargs="+", help="one column title per run (default: the run folders' names)")
     args = parser.parse_args(argv)
+    if args.labels is not None and len(args.labels) != len(args.runs):
+        parser.error(f"--labels: {len(args.labels)} given for {len(args.runs)} runs")
+    titles = args.labels or [run.name for run in args.runs]
     test_dirs = [latest_test_dir(r) for r in args.runs]
     rows = []
     for view in args.views:
@@ -59,11 +63,11 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"error: no ground truth {test_dirs[0] / 'gt' / name}")
         size = (gt.shape[1] * args.scale, gt.shape[0] * args.scale)
         cells = [label(cv2.resize(gt, size, interpolation=cv2.INTER_NEAREST), "ground truth")]
-        for run, test_dir in zip(args.runs, test_dirs):
+        for run, test_dir, title in zip(args.runs, test_dirs, titles):
             render = cv2.imread(str(test_dir / "renders" / name))
             if render is None:
                 raise SystemExit(f"error: no render {test_dir / 'renders' / name}")
-            text = run.name + view_metrics(run, test_dir.name, name)
+            text = title + view_metrics(run, test_dir.name, name)
             cells.append(label(cv2.resize(render, size, interpolation=cv2.INTER_NEAREST), text))
         rows.append(np.concatenate(cells, axis=1))
     args.output.parent.mkdir(parents=True, exist_ok=True)

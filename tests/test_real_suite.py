@@ -342,3 +342,30 @@ def test_a_chunked_run_is_continued_only_with_its_own_command_and_code(tmp_path,
         real_suite.run_one(capture, "baseline", tmp_path, tmp_path / "out", dict(schedule, iterations=6), [], 1,
                            chunk_seconds=10)
     assert (run / "chkpnt_fine_2.pth").exists()                               # nothing was cleared
+
+
+def test_side_by_side_columns_are_titled_by_method(tmp_path, monkeypatch):
+    # convergence runs all live in folders named fine_<budget>: the titles must be the methods
+    import sys
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "scripts"))
+    import side_by_side as tool
+
+    runs = {}
+    for method, value in (("baseline", 40), ("reflow", 200)):
+        run = tmp_path / method / "fine_3000"
+        for kind, image_value in (("gt", 90), ("renders", value)):
+            folder = run / "test" / "ours_3000" / kind
+            folder.mkdir(parents=True)
+            for view in range(3):
+                cv2.imwrite(str(folder / f"{view:05d}.png"), np.full((9, 16, 3), image_value, np.uint8))
+        runs[method] = run
+    titles = []
+    monkeypatch.setattr(tool, "label", lambda image, text: titles.append(text) or image)
+    masks = [np.zeros((9, 16), bool) for _ in range(3)]
+    masks[2][:4] = True
+    capture = real_suite.CAPTURES["davis_libby"]
+    output = real_suite.side_by_side(capture, runs, masks, tmp_path / "images")
+    assert output.is_file() and cv2.imread(str(output)).shape == (2 * 9 * 20, 3 * 16 * 20, 3)
+    assert titles == ["ground truth", "baseline", "reflow"] * 2
+    with pytest.raises(SystemExit):
+        tool.main([str(runs["baseline"]), "--labels", "a", "b", "-o", str(tmp_path / "x.png")])
