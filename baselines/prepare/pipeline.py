@@ -14,6 +14,7 @@ import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Sequence
 
 import cv2
 import numpy as np
@@ -183,7 +184,7 @@ def _posed_masks_stage(options: PrepareOptions, cache: StageCache, key: str, out
     return entry
 
 
-def _dropped(names: list[str], registered: set[str], models_dir: Path, off_path: list[str] = ()) -> list[dict]:
+def _dropped(names: list[str], registered: set[str], models_dir: Path, off_path: Sequence[str] = ()) -> list[dict]:
     """Each unregistered frame with the reason (`off_path`: registered, then dropped off the camera path)."""
     elsewhere: dict[str, int] = {}
     for folder in sorted(p for p in models_dir.iterdir() if p.is_dir() and p.name != BEST_MODEL):
