@@ -180,7 +180,6 @@ class _CompositeKernel(torch.autograd.Function):
         # then costs what the colours alone cost.
         off = native_build.switched_off_by_env("leaving out zero-gradient channels", ENV_ACTIVE_CHANNELS)
         active = channels if off is not None else active_channels(grad_image)
-        g_features = torch.zeros_like(features) if active < channels else torch.empty_like(features)
         if active < channels:
             features = features[:, :active].contiguous()
             grad_image = grad_image[..., :active]
@@ -189,16 +188,15 @@ class _CompositeKernel(torch.autograd.Function):
         g_means2d = torch.empty_like(means2d)
         g_conics = torch.empty_like(conics)
         g_opacities = torch.empty_like(opacities)
-        g_active = g_features if active == channels else torch.empty_like(features)
+        g_features = torch.empty_like(features)  # [N, active]
         status = getattr(lib, f"rk_backward_{suffix}")(
             _ptr(means2d), _ptr(conics), _ptr(opacities), _ptr(features), _ptr(radii), n, active,
             _ptr(offsets), _ptr(gaussian_ids), width, height, tile_size, num_threads, isa,
             _ptr(transmittance), _ptr(last), _ptr(grad_image), _ptr(grad_alpha),
-            _ptr(g_means2d), _ptr(g_conics), _ptr(g_opacities), _ptr(g_active),
+            _ptr(g_means2d), _ptr(g_conics), _ptr(g_opacities), _ptr(g_features),
         )
         _check_status(status, "backward")
-        if active < channels:
-            g_features[:, :active] = g_active
+        g_features = torch.nn.functional.pad(g_features, (0, channels - active))  # the left-out channels: 0
         needs = ctx.needs_input_grad
         grads = (g_means2d, g_conics, g_opacities, g_features)
         return tuple(g if needs[i] else None for i, g in enumerate(grads)) + (None,) * 8
