@@ -42,6 +42,14 @@ Columns, per (capture, method):
 - Gaussians: in the final `point_cloud/iteration_<N>/point_cloud.ply`; static / dynamic: ReFlow's
   labels at the end (`deformation_table.pth` beside it, True = dynamic; saved by every run, only
   meaningful with the `separation` component).
+- bg motion px: how far the model moves what lies outside the TRUE masks over time, in pixels of
+  the training views: per training view, over the Gaussians whose centre at the view's time
+  projects into the image and outside the view's true mask (dilated by 3 px), the median
+  distance between that projection and the projection of the Gaussian's mean position over all
+  training times; the median over the views (`background_motion`). 0 for a background that
+  holds still (ReFlow's static Gaussians); 4DGS's field moves every Gaussian a little, so a
+  baseline's figure says how much per-frame freedom its background uses (pose, lens and
+  exposure errors a static background must average instead).
 - NN dist: median distance from each final (canonical) Gaussian of this method to the other
   method's nearest one, in units of the scene extent (the training cameras' radius, as the
   trainer's `cameras_extent`); ReFlow's row adds its static Gaussians alone (its dynamic ones sit
@@ -73,7 +81,7 @@ from benchmarks.prepare_davis import mask_scores  # noqa: E402
 METHODS = real_suite.DEFAULT_METHODS  # ("baseline", "reflow")
 COLUMNS = ("PSNR", "train PSNR", "held-out in", "held-out out", "train in", "train out", "SE in mask %", "out-of-span",
            "mask IoU / P / R", "prior resid.", "cloud depth err", "static / sparse depth", "Gaussians",
-           "static / dynamic", "NN dist")
+           "static / dynamic", "bg motion px", "NN dist")
 
 
 class DiagnosisError(RuntimeError):
@@ -301,6 +309,61 @@ def final_cloud(run: Path, iteration: int) -> tuple[np.ndarray, np.ndarray | Non
     return points, table
 
 
+def projected_motion(centres: np.ndarray, cameras, masks: list[np.ndarray], dilate_px: int = 3) -> float | None:
+    """Median over views of the median background displacement in pixels (the `bg motion px` column).
+
+    centres: [V, N, 3] world positions of the N Gaussians at each of the V views' times; cameras:
+    V cameras (K [3, 3], viewmat [4, 4] world->camera, width, height); masks: V [H, W] bool true
+    masks. A Gaussian counts in view v when its centre at that time lies in front of the camera,
+    inside the image and outside the mask dilated by `dilate_px`; its displacement is the pixel
+    distance between that projection and the projection of its mean over the V times. None when
+    no view has such a Gaussian."""
+    mean = centres.mean(axis=0)
+    kernel = np.ones((2 * dilate_px + 1, 2 * dilate_px + 1), np.uint8)
+    medians = []
+    for points, camera, mask in zip(centres, cameras, masks):
+        K, viewmat = camera.K.double().cpu().numpy(), camera.viewmat.double().cpu().numpy()
+
+        def pixels(world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            local = world @ viewmat[:3, :3].T + viewmat[:3, 3]
+            depth = local[:, 2]
+            safe = np.where(depth > 1e-9, depth, 1.0)  # behind the camera: excluded below, no division by 0
+            return (local[:, :2] / safe[:, None]) @ K[:2, :2].T + K[:2, 2], depth
+
+        now, depth = pixels(points.astype(np.float64))
+        then, _ = pixels(mean.astype(np.float64))
+        column, row = np.floor(now[:, 0]), np.floor(now[:, 1])
+        seen = (depth > 1e-9) & (column >= 0) & (row >= 0) & (column < camera.width) & (row < camera.height)
+        grown = cv2.dilate(mask.astype(np.uint8), kernel) > 0
+        background = seen.copy()
+        background[seen] = ~grown[row[seen].astype(int), column[seen].astype(int)]
+        if background.any():
+            medians.append(float(np.median(np.linalg.norm(now[background] - then[background], axis=1))))
+    return float(np.median(medians)) if medians else None
+
+
+def background_motion(run: Path, iteration: int, source: Path, cameras, masks: list[np.ndarray]) -> tuple[float | None, str | None]:
+    """(`projected_motion` of the run's model at `iteration` over the training `cameras`, None) or
+    (None, why not). The model is loaded the way render.py loads it (the run's saved configuration)."""
+    import torch
+
+    from baselines.fourdgs.app import load_run
+
+    try:
+        loaded = load_run(["-m", str(run), "-s", str(source), "--iteration", str(iteration)])
+    except Exception as error:  # a run the current code cannot load: that cell stays empty
+        reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        return None, f"loading {run} failed: {reason}"
+    model = loaded.trainer.ctx.model
+    try:
+        with torch.no_grad():
+            centres = np.stack([model.deform(camera.time, "fine").means.cpu().numpy() for camera in cameras])
+    finally:
+        loaded.trainer.run_log.close()
+    value = projected_motion(centres, cameras, masks)
+    return value, None if value is not None else "no Gaussian projects outside the true masks"
+
+
 def nearest_median(points: np.ndarray, others: np.ndarray, extent: float) -> float | None:
     """Median over `points` [N, 3] of the distance to the nearest of `others` [M, 3], over `extent`."""
     if not len(points) or not len(others) or extent <= 0:
@@ -374,6 +437,14 @@ def diagnose_run(run: Path, scene, source: Path, render_train: bool) -> dict:
             train = region_figures(train_images, train_masks)
             row["train in"], row["train out"] = train["in"], train["out"]
             row["train SE in mask share"] = train["se_in_share"]
+    if train_masks is None:
+        why["bg motion px"] = "no true masks for the training views"
+    elif not render_train:
+        why["bg motion px"] = "the model was not loaded (--no-train-renders)"
+    else:
+        row["bg motion px"], reason = background_motion(run, iteration, source, scene.train_cameras, train_masks)
+        if reason:
+            why["bg motion px"] = reason
     points, table = final_cloud(run, iteration)
     row["Gaussians"] = len(points)
     row["_points"] = points
@@ -495,7 +566,7 @@ def cells(row: dict, notes: Notes) -> list[str]:
     return [cell("PSNR"), cell("train PSNR"), cell("held-out PSNR-mask", note_key="held-out in"),
             cell("held-out PSNR-outside", note_key="held-out out"), cell("train in"), cell("train out"), share_cell,
             span_cell, mask_cell, prior, cell("cloud depth error", "{:.3f}"), ratio_cell,
-            cell("Gaussians", "{:,}"), labels, nn_cell]
+            cell("Gaussians", "{:,}"), labels, cell("bg motion px"), nn_cell]
 
 
 def table(groups: dict[str, dict[str, dict]]) -> str:

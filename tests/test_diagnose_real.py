@@ -152,6 +152,8 @@ def test_diagnosis_gives_the_figures_of_known_errors_inside_and_outside_the_true
     assert base["NN dist"] == pytest.approx(brute(clouds["baseline"], clouds["reflow"]) / base["extent"], rel=1e-5)
     assert reflow["NN dist static"] == pytest.approx(
         brute(clouds["reflow"][static], clouds["baseline"]) / reflow["extent"], rel=1e-5)
+    for row in (base, reflow):  # the models were loaded and deformed at the training times
+        assert row["bg motion px"] is not None and math.isfinite(row["bg motion px"]) and row["bg motion px"] >= 0
     assert reflow["prior residual"] == 0.05 and reflow["cloud depth error"] == 0.03
     assert reflow["canonical alignment residual"] == 0.07
     first_reflow = json.loads((tmp_path / "first.json").read_text())["groups"]["tiny"]["reflow"]
@@ -219,6 +221,31 @@ def test_a_folder_that_is_not_a_finished_output_is_one_error_line(tmp_path, caps
     assert diagnose_real.main([str(tmp_path)]) == 2  # done-marked, but no held-out renders
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no test/ours_<N> renders" in err[0] and str(tmp_path / "cap" / "baseline") in err[0]
+
+
+def test_background_motion_counts_what_moves_outside_the_dilated_masks_in_pixels():
+    """Two views from one camera (focal 10 px, centre 16, 32x32; the mask: columns 24 and up). Per
+    view, from each Gaussian's mean over the two times: a still one 0 px, a moving one 1 px, one
+    inside the mask 3 px, one 1-3 columns left of the mask (inside the 3 px dilation) 1.25 px, one
+    behind the camera (3 px if it were projected): each view's median is over {0, 1} = 0.5 px."""
+    from types import SimpleNamespace
+
+    import torch
+
+    camera = SimpleNamespace(K=torch.tensor([[10.0, 0, 16], [0, 10.0, 16], [0, 0, 1]]), viewmat=torch.eye(4),
+                             width=32, height=32)
+    mask = np.zeros((32, 32), bool)
+    mask[:, 24:] = True
+    #                      still         moving         inside the mask  beside it       behind the camera
+    first = np.array([[0.0, 0, 1], [0.1, 0, 1], [0.9, 0, 1], [0.5, 0, 1], [0.3, 0, -1]])
+    second = np.array([[0.0, 0, 1], [-0.1, 0, 1], [1.5, 0, 1], [0.75, 0, 1], [-0.3, 0, -1]])
+    centres = np.stack([first, second])
+    masks = [mask, mask]
+    assert diagnose_real.projected_motion(centres, [camera, camera], masks) == pytest.approx(0.5)
+    # undilated, the one beside the mask counts: median of {0, 1, 1.25}
+    assert diagnose_real.projected_motion(centres, [camera, camera], masks, dilate_px=0) == pytest.approx(1.0)
+    everything = [np.ones((32, 32), bool)] * 2
+    assert diagnose_real.projected_motion(centres, [camera, camera], everything) is None
 
 
 def test_nearest_distances_and_mask_agreement_on_known_geometry():
