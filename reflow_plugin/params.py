@@ -17,7 +17,7 @@ from arguments import param
 
 LABEL_SOURCES = ("auto", "masks", "estimate", "none")
 UPGRADE_LABELS = ("auto", "motion", "checkpoint")
-STATIC_DECODERS = ("none", "triplane", "field")
+STATIC_DECODERS = ("auto", "none", "triplane", "field")
 CANONICAL_PROVIDERS = ("auto", "depth", "flow")
 FULL_FLOW_REGIONS = ("all", "dynamic")
 PAIR_MODES = ("partner", "both")
@@ -39,6 +39,19 @@ def _removed(what: str, why: str) -> str:
 
 def _fixed(what: str) -> str:
     return f"on 2026-11-26: now fixed, {what} (reflow_plugin/params.py; docs/PARAMETERS.md)"
+
+
+def resolve_static_decoder(choice: str, separation: bool) -> str:
+    """The static decoder a run uses: `auto` is the field with the separation component (measured
+    ahead of `none` on every real capture and the simulator suite: docs/PARAMETERS.md) and none
+    without it (4DGS's one network then deforms every Gaussian: no static branch). An explicit
+    decoder without separation is refused (ValueError naming the flag)."""
+    if choice == "auto":
+        return "field" if separation else "none"
+    if choice != "none" and not separation:
+        raise ValueError(f"--static_decoder {choice} needs the separation component; "
+                         "drop --disable separation or the flag")
+    return choice
 
 
 def _non_negative(value: float) -> str | None:
@@ -167,9 +180,10 @@ class ReFlowParams:
                                              "reference frame to the whole sequence (0 = all frames at once)",
                                        check=_fraction)
     # --- separated model (paper 3.2.2, appendix A.2) ---
-    static_decoder: str = param("none", "decoder of static Gaussians: none (canonical values, cheapest), "
-                                        "triplane (the paper's time-invariant spatial planes + MLP) or field "
-                                        "(ours: a 4DGS deformation field of the whole scene at 4DGS's rates)",
+    static_decoder: str = param("auto", "decoder of static Gaussians: auto (field with the separation component, "
+                                        "none without it), none (canonical values, cheapest), triplane (the "
+                                        "paper's time-invariant spatial planes + MLP) or field (ours: a 4DGS "
+                                        "deformation field of the whole scene at 4DGS's rates)",
                                 choices=STATIC_DECODERS)
     dynamic_lr_scale: float = param(10.0, "ours: learning-rate multiplier of the dynamic branch (deformation MLP "
                                           "and HexPlane); 4DGS's rates learn a deformation of a whole scene, "

@@ -65,7 +65,7 @@ from .labels import aligned_depths, training_masks
 from .matching import DYNAMIC_KEY, FLOW_KEY, MatchingConfig, check_occlusion_mode, flow_losses
 from .pairs import PairSampler
 from .params import (DYNAMIC_AABB_MARGIN, DYNAMIC_INIT_OPACITY, FLOW_MIN_ALPHA, OCCLUSION_ALPHA1, OCCLUSION_ALPHA2,
-                     PHOTO_SSIM_WEIGHT, WINDOW_CULL, ReFlowParams)
+                     PHOTO_SSIM_WEIGHT, WINDOW_CULL, ReFlowParams, resolve_static_decoder)
 from .separated_modeling import SeparatedModeling
 from .separation import SeparatedDeformation
 from .upgrade import upgrade_4dgs_model, written_by_reflow
@@ -86,10 +86,7 @@ class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugi
     def __init__(self, params: Mapping[str, Any] | None = None, enabled: frozenset[str] | None = None) -> None:
         super().__init__(params, enabled)
         self.p: ReFlowParams = self.params.get("ReFlowParams") or ReFlowParams()
-        if self.p.static_decoder != "none" and not self.is_enabled("separation"):
-            # without separation 4DGS's one network deforms every Gaussian: no static branch to decode
-            raise ValueError(f"--static_decoder {self.p.static_decoder} needs the separation component; "
-                             f"drop --disable separation or the flag")
+        self.static_decoder = resolve_static_decoder(self.p.static_decoder, self.is_enabled("separation"))
         self.sampler: PairSampler | None = None
         self.masks: list[np.ndarray] | None = None  # per training camera (uid order), True = dynamic
         self.depth_cameras: list = []  # the training cameras as the depth steps read them (initial_point_cloud)
@@ -135,6 +132,7 @@ class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugi
             self.sampler = PairSampler(ctx.train_cameras, self.p.pair_window, seed=ctx.args.opt.seed)
         available, reason = canonical_available()
         self.info["components"] = sorted(self.enabled)
+        self.info["static_decoder"] = self.static_decoder
         if self.is_enabled("comp_init") and not available:
             self.info["comp_init"] = f"unavailable: {reason}"
             log.warning("comp_init is enabled but %s; the host's initial cloud is used instead", reason)
@@ -158,7 +156,7 @@ class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugi
     def build_model(self, ctx) -> GaussianModel | None:
         if not self.is_enabled("separation"):
             return None
-        deformation = SeparatedDeformation(ctx.args.hidden, self.p.static_decoder, zero_init=True, relative_time=True,
+        deformation = SeparatedDeformation(ctx.args.hidden, self.static_decoder, zero_init=True, relative_time=True,
                                            anchored=True, window_cull=WINDOW_CULL)
         return GaussianModel(ctx.args.model.sh_degree, ctx.args.hidden, deformation=deformation)
 
@@ -200,7 +198,7 @@ class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugi
     def _bakes_static(self) -> bool:
         """Whether an upgraded 4DGS model's static Gaussians are frozen at their time averages: with
         separation, unless the static field carries 4DGS's own network (`complete_foreign_state`)."""
-        return self.is_enabled("separation") and self.p.static_decoder != "field"
+        return self.is_enabled("separation") and self.static_decoder != "field"
 
     def on_stage_start(self, ctx) -> None:
         # again here: a run continued from a point_cloud folder or a checkpoint builds no initial cloud

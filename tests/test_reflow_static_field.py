@@ -130,7 +130,11 @@ def test_a_static_decoder_without_separation_is_refused():
     everything = frozenset(ReFlowPlugin.components)
     for decoder in ("field", "triplane"):
         params = {"ReFlowParams": ReFlowParams(static_decoder=decoder)}
-        assert ReFlowPlugin(params, everything).p.static_decoder == decoder
+        assert ReFlowPlugin(params, everything).static_decoder == decoder
         with pytest.raises(ValueError, match=f"--static_decoder {decoder} needs the separation component"):
             ReFlowPlugin(params, everything - {"separation"})
-    ReFlowPlugin({"ReFlowParams": ReFlowParams()}, everything - {"separation"})  # the default decoder is fine
+    # the default (auto): the field with separation, none without it (the ablation row still runs)
+    assert ReFlowParams().static_decoder == "auto"
+    assert ReFlowPlugin({"ReFlowParams": ReFlowParams()}, everything).static_decoder == "field"
+    assert ReFlowPlugin({"ReFlowParams": ReFlowParams()}, everything - {"separation"}).static_decoder == "none"
+    assert ReFlowPlugin({"ReFlowParams": ReFlowParams(static_decoder="none")}, everything).static_decoder == "none"
