@@ -599,7 +599,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--captures", help="comma list of capture folders (default: all)")
     parser.add_argument("--data", type=Path, help="read each dataset from DATA/<name> instead of the runs' -s")
     parser.add_argument("--no-train-renders", action="store_true",
-                        help="render no training view (their cells stay empty unless RUN/train/ours_<N> exists)")
+                        help="render no training view and load no model (the training-view cells stay empty unless "
+                             "RUN/train/ours_<N> exists; bg motion px stays empty)")
     parser.add_argument("--output", type=Path, help="write STEM.md and STEM.json (default: OUT/diagnosis)")
     return parser
 

@@ -55,9 +55,13 @@ METHODS = {
     # the same without the check's fallback: the raw pointmaps whatever their scale
     "reflow_no_align_unchecked": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow",
                                   "--no-canonical_align", "--no-canonical_check"],
-    # static Gaussians through a whole-scene 4DGS field of their own (`--static_decoder field`)
+    # static Gaussians through a whole-scene 4DGS field of their own (`--static_decoder field`, the
+    # default since 2026-11-28: the same runs as `reflow`, kept so that older output folders still read)
     "reflow_static_field": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow",
                             "--static_decoder", "field"],
+    # the paper's rigid static scene, the default until 2026-11-28 (cheaper: no network for static Gaussians)
+    "reflow_static_none": ["--configs", "arguments/synthetic/reflow.py", "--plugin", "reflow",
+                           "--static_decoder", "none"],
 }
 SCHEDULES = {
     "full": [],

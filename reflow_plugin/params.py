@@ -42,8 +42,8 @@ def _fixed(what: str) -> str:
 
 
 def resolve_static_decoder(choice: str, separation: bool) -> str:
-    """The static decoder a run uses: `auto` is the field with the separation component (measured
-    ahead of `none` on every real capture and the simulator suite: docs/PARAMETERS.md) and none
+    """The static decoder a run uses: `auto` is the field with the separation component (ahead of
+    `none` on every capture and simulator suite it was measured on: docs/PARAMETERS.md) and none
     without it (4DGS's one network then deforms every Gaussian: no static branch). An explicit
     decoder without separation is refused (ValueError naming the flag)."""
     if choice == "auto":
