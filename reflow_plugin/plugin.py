@@ -74,6 +74,8 @@ from .visualize import write_panel
 log = logging.getLogger("reflow")
 RUN_FOLDER = "reflow"
 PARTNER_ROWS_SWITCH = "REFLOW4DGS_PARTNER_ROWS"  # 0/false/off/no: partners deformed whole (partner_rows)
+# 0/false/off/no: the static field evaluated at the partner's own time (partner_shared_rows)
+PARTNER_STATIC_SWITCH = "REFLOW4DGS_PARTNER_STATIC_SHARED"
 
 
 class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugin):
@@ -253,6 +255,20 @@ class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugi
         buffers = ctx.model.deformation_inputs()
         views = [view for view, partner in zip(ctx.batch, self._partner_cameras) if partner is not None]
         return [alive_at(view.time, buffers) for view in views]
+
+    def partner_shared_rows(self, ctx) -> list[tuple[int, Tensor] | None] | None:
+        """With the static field: per projected partner, (its batch view, the static Gaussians). They
+        take the field's value at the VIEW's time at the partner too, so a static Gaussian's flow
+        towards the partner is the camera's alone, and the field (4DGS's whole network, on most rows)
+        runs once per view instead of twice. Its corrections are sub-pixel and slow; the flow
+        priors it would change there are not (docs/REFLOW.md, "The static field"). Values and
+        gradients of the views' renders are unchanged. `REFLOW4DGS_PARTNER_STATIC_SHARED=0`
+        evaluates the field at the partner's time (for A/B measurements)."""
+        if (not self._partners_projected or self.static_decoder != "field" or not self.is_enabled("separation")
+                or switched_off_by_env("", PARTNER_STATIC_SWITCH)):
+            return None
+        static = ~ctx.model.deformation_table
+        return [(k, static) for k, partner in enumerate(self._partner_cameras) if partner is not None]
 
     def extra_features(self, ctx, view_index: int) -> dict[str, Tensor] | None:
         targets = self._targets(ctx)

@@ -19,7 +19,9 @@ Static Gaussians are time-invariant, except with "field". The choices (`static_d
   `static_field.*`), at 4DGS's own rates (optimizer groups `static_deformation` / `static_grid`,
   `scheduled_groups`) and regularisers, output layers zeroed: the static Gaussians get the
   baseline's small time-varying corrections (what a casual capture's camera and geometry errors
-  ask for), while the dynamic branch keeps its box, rates, windows and anchor.
+  ask for), while the dynamic branch keeps its box, rates, windows and anchor. A partner frame
+  reads the static rows at its view's time (ReFlowPlugin.partner_shared_rows, deform_many's
+  `shared`), so the field runs once per view.
 
 Labels are 4DGS's `_deformation_table` ([N] bool): clone/split/prune keep it in step and it is
 saved as `deformation_table.pth`, so labels survive densification and checkpoints for free. A

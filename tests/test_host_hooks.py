@@ -188,6 +188,49 @@ def test_partners_are_projected_not_rendered_and_stay_out_of_the_loss(tiny_scene
     torch.testing.assert_close(ctx.losses["l1"].detach(), expected.detach())  # the partner adds no loss
 
 
+class _SharedPartner(_Partner):
+    """A partner whose odd rows take the batch view's state (partner_shared_rows), or a bad answer."""
+
+    name = "shared_partner"
+
+    def __init__(self, answer=None):
+        self.answer = answer
+
+    def partner_shared_rows(self, ctx):
+        if self.answer is not None:
+            return self.answer
+        return [(0, torch.arange(ctx.model.num_gaussians) % 2 == 1)]
+
+
+def test_partner_shared_rows_give_the_partner_the_views_state_and_bad_answers_are_named(tiny_scene, tmp_path):
+    from baselines.fourdgs.app import REPO_ROOT, build_trainer
+    from baselines.fourdgs.plugins import PluginError
+
+    argv = ["-s", str(tiny_scene), "-m", str(tmp_path / "run"), "--quiet",
+            "--configs", str(REPO_ROOT / "arguments/synthetic/default.py")]
+    trainer = build_trainer(argv)
+    trainer.build()
+    trainer._begin_stage("fine", 2)
+    with torch.no_grad():  # time-dependent deformation, so the two times differ
+        for p in trainer.ctx.model.deformation.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    plugin = _SharedPartner()
+    trainer.hooks = HookRunner([plugin])
+    trainer.ctx.iteration = 1
+    trainer.train_step()
+    assert len(plugin.views) == 1, len(plugin.views)
+    view, partner = plugin.views[0].state, plugin.partners[0].state
+    odd = torch.arange(view.num_gaussians) % 2 == 1
+    assert plugin.views[0].camera.time != plugin.partners[0].camera.time
+    torch.testing.assert_close(partner.means[odd], view.means[odd])
+    assert not torch.allclose(partner.means[~odd], view.means[~odd])  # the others at the partner's own time
+    for bad in ([(1, odd)], [(0, odd), None]):
+        trainer.hooks = HookRunner([_SharedPartner(bad)])
+        with pytest.raises(PluginError, match="partner_shared_rows"):
+            trainer.train_step()
+    trainer.run_log.close()
+
+
 def test_non_finite_plugin_channel_is_named_with_its_count(tiny_scene, tmp_path):
     """The rasterizer only knows "features"; composite_view names the block (a plugin's channel
     or the colours) and how many Gaussians carry NaN/inf."""

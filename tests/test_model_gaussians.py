@@ -165,6 +165,56 @@ def test_deform_many_equals_one_deform_per_time_values_and_gradients():
         _assert_states_close(got, model.deform(t, "fine"))
 
 
+def test_deform_many_shared_rows_take_the_other_times_state_and_send_their_gradients_there(monkeypatch):
+    """`shared[k] = (j, mask)`: the masked rows at times[k] are the state at times[j] (values and
+    gradients, against one deform per time and torch.where as the oracle), the others times[k]'s
+    own; the module is not asked to deform the masked rows at times[k]; deform's path agrees."""
+    times = (0.2, 0.9, 0.6)
+    model = model_with_time_dependent_planes()
+    model.training_setup(opt_args())
+    n = model.num_gaussians
+    mask = torch.arange(n) % 3 != 0
+    shared = [None, (0, mask), None]
+    one_by_one = [model.deform(t, "fine") for t in times]
+
+    def oracle(states):
+        return [states[0], states[1].replace(**{name: torch.where(mask.unsqueeze(1), getattr(states[0], name),
+                                                                  getattr(states[1], name))
+                                                for name in ("means", "log_scales", "rotations")}), states[2]]
+
+    many = model.deform_many(times, "fine", shared=shared)
+    for got, expected in zip(many, oracle(one_by_one)):
+        _assert_states_close(got, expected)
+    assert not torch.allclose(many[1].means[~mask], many[0].means[~mask])  # unshared rows keep their own time
+
+    def grads(states) -> list[torch.Tensor]:
+        loss = sum((k + 1) * (s.means.square().sum() + s.log_scales.sum()) for k, s in enumerate(states))
+        return torch.autograd.grad(loss, [model._xyz, *model.deformation.get_mlp_parameters()], allow_unused=True)
+
+    for got, expected in zip(grads(model.deform_many(times, "fine", shared=shared)),
+                             grads(oracle([model.deform(t, "fine") for t in times]))):
+        if expected is None:
+            assert got is None
+        else:
+            torch.testing.assert_close(got, expected, atol=1e-4, rtol=1e-4)
+    seen = {}
+    forward = model.deformation.forward
+    monkeypatch.setattr(model.deformation, "forward", lambda state, t, buffers=None: (
+        seen.update(used=buffers.get("row_used")), forward(state, t, buffers))[1])
+    model.deform_many(times, "fine", rows=[None, None, mask], shared=shared)
+    expected_used = torch.cat([torch.ones(n, dtype=torch.bool), ~mask, mask])
+    assert torch.equal(seen["used"], expected_used)
+    # deform's path (a time outside the span) shares the same way
+    model.set_time_span((0.3, 0.95), "linear")
+    for got, expected in zip(model.deform_many(times, "fine", shared=shared),
+                             oracle([model.deform(t, "fine") for t in times])):
+        _assert_states_close(got, expected)
+    for bad, match in (([None, (1, mask), None], "another"), ([None, (0, mask)], "entries"),
+                       ([None, (0, mask[:-1]), None], "bool"), ([(2, mask), (0, mask), None], "share none")):
+        with pytest.raises(ValueError, match=match):
+            model.deform_many(times, "fine", shared=bad)
+
+
 def test_fields_the_deformation_passes_through_stay_the_canonical_tensor_with_equal_gradients():
     """4DGS's disabled heads (SH, opacity) leave those fields as they are: deform_many hands every
     time the canonical tensor itself (no [kN] slices), with the per-time call's values and gradients."""

@@ -138,3 +138,43 @@ def test_a_static_decoder_without_separation_is_refused():
     assert ReFlowPlugin({"ReFlowParams": ReFlowParams()}, everything).static_decoder == "field"
     assert ReFlowPlugin({"ReFlowParams": ReFlowParams()}, everything - {"separation"}).static_decoder == "none"
     assert ReFlowPlugin({"ReFlowParams": ReFlowParams(static_decoder="none")}, everything).static_decoder == "none"
+
+
+def test_partners_read_the_static_field_at_their_views_time_and_the_views_are_unchanged(monkeypatch):
+    """ReFlowPlugin.partner_shared_rows (the field only): per projected partner, its batch view and
+    the static rows; through deform_many the partner's static rows equal the view's (the field's
+    value at the view's time), its dynamic rows stay at the partner's own time, the views are the
+    same as without sharing; `none`, the switch, or no projected partner: nothing shared."""
+    from types import SimpleNamespace
+
+    from reflow_plugin.plugin import PARTNER_STATIC_SWITCH
+
+    model = _model()
+    _perturb(model.deformation)
+    _perturb(model.deformation.static_field)
+    table = model.deformation_table
+    everything = frozenset(ReFlowPlugin.components)
+    plugin = ReFlowPlugin({"ReFlowParams": ReFlowParams()}, everything)
+    views = [SimpleNamespace(time=0.1), SimpleNamespace(time=0.4), SimpleNamespace(time=0.7)]
+    plugin._partner_cameras = [SimpleNamespace(time=0.3), None, SimpleNamespace(time=0.9)]
+    plugin._partners_projected = True
+    ctx = SimpleNamespace(model=model, batch=views)
+    shared = plugin.partner_shared_rows(ctx)
+    assert [k for k, _ in shared] == [0, 2] and all(torch.equal(mask, ~table) for _, mask in shared)
+    times = (0.1, 0.4, 0.7, 0.3, 0.9)
+    alone = model.deform_many(times, "fine")
+    together = model.deform_many(times, "fine", shared=[None, None, None, *shared])
+    for k in range(3):
+        torch.testing.assert_close(together[k].means, alone[k].means)
+    for partner, view in ((3, 0), (4, 2)):
+        torch.testing.assert_close(together[partner].means[~table], alone[view].means[~table])
+        torch.testing.assert_close(together[partner].means[table], alone[partner].means[table])
+        assert not torch.allclose(alone[partner].means[~table], alone[view].means[~table])  # the field moves them
+    monkeypatch.setenv(PARTNER_STATIC_SWITCH, "0")
+    assert plugin.partner_shared_rows(ctx) is None
+    monkeypatch.delenv(PARTNER_STATIC_SWITCH)
+    rigid = ReFlowPlugin({"ReFlowParams": ReFlowParams(static_decoder="none")}, everything)
+    rigid._partner_cameras, rigid._partners_projected = plugin._partner_cameras, True
+    assert rigid.partner_shared_rows(ctx) is None
+    plugin._partners_projected = False
+    assert plugin.partner_shared_rows(ctx) is None

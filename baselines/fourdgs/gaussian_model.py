@@ -100,6 +100,31 @@ def _opt_value(opt: Any, name: str) -> Any:
         raise ValueError(f"optimization arguments lack {name!r} (4DGS OptimizationParams)") from None
 
 
+def _without(used: Tensor | None, taken: Tensor | None, device: torch.device) -> Tensor | None:
+    """[N] bool: the rows `used` (None: all) less those `taken` from another time (None: none)."""
+    if taken is None:
+        return used
+    keep = ~taken.to(device)
+    return keep if used is None else used.to(device) & keep
+
+
+def _share_rows(states: list[GaussianState], shared: Sequence[tuple[int, Tensor] | None] | None) -> list[GaussianState]:
+    """deform_many's last step: rows `mask` of states[k] replaced by states[j]'s for shared[k] = (j, mask)."""
+    if shared is None:
+        return states
+    out = list(states)
+    for k, entry in enumerate(shared):
+        if entry is None:
+            continue
+        source, mask = states[entry[0]], entry[1]
+        out[k] = GaussianState(*(
+            getattr(states[k], name) if getattr(source, name) is getattr(states[k], name)
+            else torch.where(mask.view(-1, *([1] * (getattr(source, name).dim() - 1))),
+                             getattr(source, name), getattr(states[k], name))
+            for name in STATE_FIELDS))
+    return out
+
+
 def _fused_adam_supported(device: torch.device) -> bool:
     """torch's fused Adam runs on CPU (torch >= 2.4) and CUDA; elsewhere the per-tensor one."""
     return torch.device(device).type in ("cpu", "cuda")
@@ -571,7 +596,8 @@ class GaussianModel:
         return out
 
     def deform_many(self, times: Sequence[float], stage: str,
-                    rows: Sequence[Tensor | None] | None = None) -> list[GaussianState]:
+                    rows: Sequence[Tensor | None] | None = None,
+                    shared: Sequence[tuple[int, Tensor] | None] | None = None) -> list[GaussianState]:
         """The Gaussians at each of `times` (scalars), equal to ``[deform(t, stage) for t in times]``.
 
         Several times inside the training span go through the deformation module in ONE call on
@@ -583,15 +609,25 @@ class GaussianModel:
         `rows[k]` ([N] bool, or None for all): the Gaussians whose state at times[k] the caller
         reads. The module gets them as ``buffers["row_used"]`` ([kN] bool) and may leave the other
         rows undeformed (equal to the canonical state); on ``deform``'s path every row is deformed.
+
+        `shared[k]` = (j, mask [N] bool), or None: the Gaussians in `mask` take at times[k] their
+        state at times[j] (values, and gradients through times[j]'s deformation), so the module
+        need not deform them at times[k] (they leave ``row_used``). E.g. ReFlow's static field read
+        at the batch view's time for the view's partner frame: the flow of a static Gaussian is
+        then the camera's alone.
         """
         if rows is not None and len(rows) != len(times):
             raise ValueError(f"deform_many: {len(rows)} row masks for {len(times)} times")
+        shared = self._check_shared(shared, len(times))
+        if shared is not None:  # rows taken from another time are not deformed at this one
+            rows = [_without(None if rows is None else rows[k], None if s is None else s[1], self.device)
+                    for k, s in enumerate(shared)]
         times = [float(t) for t in times]
         span = self.time_span
         outside = span is not None and self.time_outside != "extrapolate" and not all(
             span[0] <= t <= span[1] for t in times)
         if stage != "fine" or len(times) < 2 or outside:
-            return [self.deform(t, stage) for t in times]
+            return _share_rows([self.deform(t, stage) for t in times], shared)
         state, count = self.canonical_state(), self.num_gaussians
         # fields the module passes through unread are not repeated (SH: 48 of a row's 59 values)
         passed = getattr(self._deformation, "passed_through", frozenset)()
@@ -617,7 +653,30 @@ class GaussianModel:
         # canonical tensor at every time: its gradient then reaches the parameter directly instead
         # of through k slices and a concatenation of [kN, ...] zeros (same values and gradients).
         kept = {name: getattr(state, name) for name in STATE_FIELDS if getattr(out, name) is getattr(repeated, name)}
-        return [out.index(slice(k * count, (k + 1) * count)).replace(**kept) for k in range(len(times))]
+        return _share_rows([out.index(slice(k * count, (k + 1) * count)).replace(**kept)
+                            for k in range(len(times))], shared)
+
+    def _check_shared(self, shared: Sequence[tuple[int, Tensor] | None] | None,
+                      count: int) -> list[tuple[int, Tensor] | None] | None:
+        """deform_many's `shared`, checked: one entry per time, each (another time's index, [N] bool)."""
+        if shared is None or all(s is None for s in shared):
+            return None
+        if len(shared) != count:
+            raise ValueError(f"deform_many: {len(shared)} shared-row entries for {count} times")
+        checked: list[tuple[int, Tensor] | None] = []
+        for k, entry in enumerate(shared):
+            if entry is None:
+                checked.append(None)
+                continue
+            source, mask = entry
+            if not 0 <= int(source) < count or int(source) == k or shared[int(source)] is not None:
+                raise ValueError(f"deform_many: time {k} takes its shared rows from time {source}, which must be "
+                                 f"another of the {count} times and share none itself")
+            if mask.dtype != torch.bool or tuple(mask.shape) != (self.num_gaussians,):
+                raise ValueError(f"deform_many: a shared-row mask must be [{self.num_gaussians}] bool, "
+                                 f"got {mask.dtype} {list(mask.shape)}")
+            checked.append((int(source), mask.to(self.device)))
+        return checked
 
     @property
     def deformation_table(self) -> Tensor:

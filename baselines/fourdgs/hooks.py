@@ -7,7 +7,7 @@ Order of hook calls in one training run (see trainer.py):
     for stage in ("coarse", "fine"):
         on_stage_start
         every iteration:
-            select_batch  select_partners  partner_rows
+            select_batch  select_partners  partner_rows  partner_shared_rows
             (host: deform + project every view of the batch, and every partner)
             extra_features(view k) for each view   (host: composite each view)
             loss_weights(view k) for each view  (host: baseline losses)  extra_losses

@@ -110,6 +110,16 @@ class Plugin:
         """
         return None
 
+    def partner_shared_rows(self, ctx: TrainContext) -> list[tuple[int, Tensor] | None] | None:
+        """Per camera of `select_partners` (same order): (k, [N] bool) or None; None for all partners.
+
+        The Gaussians in the mask take, at the partner, their state at batch view k's time (values,
+        and gradients through that view's deformation) instead of being deformed to the partner's
+        time (`GaussianModel.deform_many`'s `shared`): e.g. ReFlow's static field read once, at the
+        view's time, so a static Gaussian's flow towards the partner is the camera's alone.
+        """
+        return None
+
     def extra_features(self, ctx: TrainContext, view_index: int) -> dict[str, Tensor] | None:
         """Per-Gaussian feature channels to composite in view `view_index`'s pass.
 

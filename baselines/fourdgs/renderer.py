@@ -52,14 +52,16 @@ def prepare_view(model: GaussianModel, camera: Camera, stage: str, backend: str 
 
 
 def prepare_views(model: GaussianModel, cameras: Sequence[Camera], stage: str, backend: str = "auto",
-                  colors: Sequence[bool] | None = None, rows: Sequence[Tensor | None] | None = None) -> list[ViewRender]:
+                  colors: Sequence[bool] | None = None, rows: Sequence[Tensor | None] | None = None,
+                  shared: Sequence[tuple[int, Tensor] | None] | None = None) -> list[ViewRender]:
     """`prepare_view` of every camera, the deformation to all their times in one call
     (`GaussianModel.deform_many`); `colors[k]` as prepare_view's `colors` (default all True);
-    `rows[k]` ([N] bool or None) as deform_many's `rows` (the Gaussians read at camera k's time)."""
+    `rows[k]` ([N] bool or None) as deform_many's `rows` (the Gaussians read at camera k's time);
+    `shared[k]` ((j, [N] bool) or None) as deform_many's `shared` (rows taken from camera j's time)."""
     colors = [True] * len(cameras) if colors is None else list(colors)
     if len(colors) != len(cameras):
         raise ValueError(f"prepare_views: {len(colors)} colour flags for {len(cameras)} cameras")
-    states = model.deform_many([camera.time for camera in cameras], stage, rows)
+    states = model.deform_many([camera.time for camera in cameras], stage, rows, shared)
     return [prepare_view(model, camera, stage, backend, flag, state)
             for camera, flag, state in zip(cameras, colors, states)]
 

@@ -252,13 +252,17 @@ class Trainer:
         rows = (self.hooks.first("partner_rows", ctx) if partners else None) or [None] * len(partners)
         if len(rows) != len(partners):
             raise PluginError(f"partner_rows returned {len(rows)} masks for {len(partners)} partner cameras")
+        shared = (self.hooks.first("partner_shared_rows", ctx) if partners else None) or [None] * len(partners)
+        if len(shared) != len(partners) or any(s is not None and not 0 <= s[0] < len(ctx.batch) for s in shared):
+            raise PluginError(f"partner_shared_rows must give, per partner camera ({len(partners)}), None or "
+                              f"(index of a batch view < {len(ctx.batch)}, [N] bool); got {len(shared)} entries")
         ctx.losses, ctx.metrics, ctx.densify_record = {}, {}, None
 
         with self.timer("deform_project"):
             # one deformation call for the batch and the partner frames (prepare_views)
             prepared = prepare_views(model, [*ctx.batch, *partners], ctx.stage, self.pipe.backend,
                                      [True] * len(ctx.batch) + [False] * len(partners),
-                                     [None] * len(ctx.batch) + list(rows))
+                                     [None] * len(ctx.batch) + list(rows), [None] * len(ctx.batch) + list(shared))
             ctx.views, ctx.partners = prepared[:len(ctx.batch)], prepared[len(ctx.batch):]
         with self.timer("rasterize"):
             for k, view in enumerate(ctx.views):
