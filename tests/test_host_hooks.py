@@ -165,7 +165,8 @@ class _Partner(Plugin):
         return None
 
 
-def test_partners_are_projected_not_rendered_and_stay_out_of_the_loss(tiny_scene, tmp_path):
+def _fine_trainer(tiny_scene, tmp_path):
+    """A built trainer on the tiny scene with the synthetic config, in its fine stage."""
     from baselines.fourdgs.app import REPO_ROOT, build_trainer
 
     argv = ["-s", str(tiny_scene), "-m", str(tmp_path / "run"), "--quiet",
@@ -173,6 +174,11 @@ def test_partners_are_projected_not_rendered_and_stay_out_of_the_loss(tiny_scene
     trainer = build_trainer(argv)
     trainer.build()
     trainer._begin_stage("fine", 2)
+    return trainer
+
+
+def test_partners_are_projected_not_rendered_and_stay_out_of_the_loss(tiny_scene, tmp_path):
+    trainer = _fine_trainer(tiny_scene, tmp_path)
     plugin = _Partner()
     trainer.hooks = HookRunner([plugin])
     trainer.ctx.iteration = 1
@@ -203,14 +209,9 @@ class _SharedPartner(_Partner):
 
 
 def test_partner_shared_rows_give_the_partner_the_views_state_and_bad_answers_are_named(tiny_scene, tmp_path):
-    from baselines.fourdgs.app import REPO_ROOT, build_trainer
     from baselines.fourdgs.plugins import PluginError
 
-    argv = ["-s", str(tiny_scene), "-m", str(tmp_path / "run"), "--quiet",
-            "--configs", str(REPO_ROOT / "arguments/synthetic/default.py")]
-    trainer = build_trainer(argv)
-    trainer.build()
-    trainer._begin_stage("fine", 2)
+    trainer = _fine_trainer(tiny_scene, tmp_path)
     with torch.no_grad():  # time-dependent deformation, so the two times differ
         for p in trainer.ctx.model.deformation.parameters():
             p.add_(0.05 * torch.randn_like(p))
