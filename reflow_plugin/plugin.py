@@ -260,10 +260,10 @@ class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugi
         """With the static field: per projected partner, (its batch view, the static Gaussians). They
         take the field's value at the VIEW's time at the partner too, so a static Gaussian's flow
         towards the partner is the camera's alone, and the field (4DGS's whole network, on most rows)
-        runs once per view instead of twice. Its corrections are sub-pixel and slow; the flow
-        priors it would change there are not (docs/REFLOW.md, "The static field"). Values and
-        gradients of the views' renders are unchanged. `REFLOW4DGS_PARTNER_STATIC_SHARED=0`
-        evaluates the field at the partner's time (for A/B measurements)."""
+        runs once per view instead of twice (measured: suite means within 0.05 dB, the step 2.1-2.5x
+        -> 1.6-1.7x the baseline's; docs/PROFILE.md and docs/REAL_CAPTURES.md, "The static field
+        read once per view"). Values and gradients of the views' renders are unchanged.
+        `REFLOW4DGS_PARTNER_STATIC_SHARED=0` evaluates the field at the partner's time (A/B)."""
         if (not self._partners_projected or self.static_decoder != "field" or not self.is_enabled("separation")
                 or switched_off_by_env("", PARTNER_STATIC_SWITCH)):
             return None
