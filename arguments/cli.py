@@ -72,7 +72,8 @@ class RenderArgs:
 
 
 def parse_train_args(argv: list[str] | None = None,
-                     extra_groups: dict[str, type] | None = None) -> TrainArgs:
+                     extra_groups: dict[str, type] | None = None,
+                     saved_model_over_configs: bool = False) -> TrainArgs:
     """Parse train.py's command line and config files into typed groups.
 
     ``extra_groups`` maps a group name (as used in config files, e.g. "ReFlowParams") to a
@@ -82,7 +83,9 @@ def parse_train_args(argv: list[str] | None = None,
 
     With ``--start_checkpoint`` naming an output folder and no ``--configs``, the model
     hyperparameters come from that folder's saved configuration (``config.json`` or 4DGS's
-    ``cfg_args``), as ``render.py -m`` does; flags typed still win.
+    ``cfg_args``), as ``render.py -m`` does; flags typed still win. ``saved_model_over_configs``:
+    the ``--configs`` in ``argv`` were chosen for the user (train.py's family config), so that
+    saved configuration goes over them (the family's schedule, the old run's model shapes).
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     extra = _check_extra(extra_groups)
@@ -97,8 +100,8 @@ def parse_train_args(argv: list[str] | None = None,
     configs = cli_layer.get("RunParams", "configs", [])
     base = load_configs(configs, schema)
     old_run = model_dir_of_checkpoint(cli_layer.get("RunParams", "start_checkpoint"))
-    if old_run is not None and not configs:
-        base = read_saved_model_config(old_run, schema)
+    if old_run is not None and (saved_model_over_configs or not configs):
+        base = merge_layers(base, read_saved_model_config(old_run, schema))
     layer = merge_layers(base, cli_layer)
     instances, sources = resolve(schema, classes, layer)
     _absolute_source_path(instances["ModelParams"])

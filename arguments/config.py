@@ -55,8 +55,9 @@ from .layers import DELETE, ConfigError, Layer, Schema, close_matches, field_own
 log = logging.getLogger("arguments")
 
 BASE_KEY = "_base_"
-# RunParams fields that only make sense on the command line.
-_CLI_ONLY = {("RunParams", "configs")}
+# RunParams fields that only make sense on the command line (overwrite: a run folder is cleared only
+# when the user types it; the folder check reads the typed flag).
+_CLI_ONLY = {("RunParams", "configs"), ("RunParams", "overwrite")}
 
 
 def read_config_chain(path: str | Path, *, referrer: str = "--configs") -> list[tuple[Path, dict]]:
@@ -162,8 +163,9 @@ def validate_file(path: Path, raw: dict[str, Any], schema: Schema) -> Layer:
                     + (f" (did you mean {' or '.join(repr(h) for h in dict.fromkeys(hint))}?)"
                        if hint else ""), file=src, key=key)
             if (owner, name) in _CLI_ONLY:
-                raise ConfigError(f"{src}: {owner}.{name} cannot be set in a config file "
-                                  f"(use {BASE_KEY} to include other files)", file=src, key=key)
+                use = f"use {BASE_KEY} to include other files" if name == "configs" else f"type --{name}"
+                raise ConfigError(f"{src}: {owner}.{name} cannot be set in a config file ({use})",
+                                  file=src, key=key)
             if owner != group:
                 if (owner, name) in layer.sources:
                     raise ConfigError(f"{src}: '{name}' is given under both {group} and "

@@ -310,7 +310,8 @@ class RunParams:
                                comma_list=True)
     enable: list[str] = param([], "plugin components to enable (comma list)", ours=True,
                               comma_list=True)
-    log_every: int = param(10, "iterations between progress/log updates", ours=True,
+    log_every: int = param(10, "iterations between train_log.jsonl records (the console's progress line "
+                           "refreshes every 10 iterations, or prints every 100 when not a terminal)", ours=True,
                            check=_check_positive)
     overwrite: bool = param(False, "clear the earlier run's files in -m before this run (without it, "
                             "a folder holding a run is refused)", ours=True)

@@ -8,7 +8,11 @@
 Each (scene, method) is an ordinary `train.py` run in `OUT/<scene>/<method>` with the scene's
 synthetic config (`arguments/synthetic/default.py`, ReFlow: `arguments/synthetic/reflow.py`), the
 full schedule; `reflow_no_comp_init` is ReFlow without its complete canonical space (part 1
-alone). A run whose `results.json` holds its final metrics is reused (a killed sweep resumes). The baseline's
+alone). `--methods` defaults to `baseline,reflow`. A run whose `results.json` holds its final metrics is
+reused (a killed sweep resumes) when its `run.json` records the same train.py command; a run trained
+with another schedule or other flags, or a `--priors real` scene written at another `--scene_scale`,
+stops the suite with one error line (another `--out`, or `--report_only` to read the runs as they
+are). The baseline's
 flow is measured afterwards with `python -m reflow_plugin.evaluate` (the same renderer ReFlow's
 own evaluation uses). Prints one Markdown table (per scene and mean) and writes it with the raw
 figures to `OUT/suite.md` / `OUT/suite.json`. `--jobs 2` runs two trainings at once with one
@@ -90,21 +94,52 @@ def scene_source(scene: str, priors: str = "exact", scene_scale: float = 50.0) -
     return ROOT / "data" / folder / scene, (flags + [str(scene_scale)] if flags else [])
 
 
+class SuiteError(RuntimeError):
+    """A scene folder or run folder holds something other than what this command asks for."""
+
+
+def check_scene_data(source: Path, priors: str, scene_scale: float) -> None:
+    """An existing `--priors real` scene must have been written at `scene_scale` (it is reused, not rewritten)."""
+    if priors != "real" or not (source / "scene.json").is_file():
+        return
+    written = json.loads((source / "scene.json").read_text()).get("scene_scale")
+    if written is None or abs(float(written) - scene_scale) > 1e-9 * max(1.0, scene_scale):
+        raise SuiteError(f"{source} was written with --scene_scale {written}, not {scene_scale:g}: delete the "
+                         "folder to write it again, or pass its scale")
+
+
+def check_run_command(run: Path, command: list[str]) -> None:
+    """A finished run is reused only when it was trained with `command` (train.py and its flags)."""
+    record = run / "run.json"
+    stored = json.loads(record.read_text()).get("command") if record.is_file() else None
+    if stored != command:
+        shown = " ".join(stored) if stored else "no command recorded"
+        raise SuiteError(f"{run} was trained with another command ({shown}); use another --out for this "
+                         "schedule or these flags, or --report_only to read the finished runs as they are")
+
+
 def run_one(scene: str, method: str, out: Path, extra: list[str], threads: int | None, priors: str = "exact",
-            scene_scale: float = 50.0) -> Path:
-    """Train (unless done) and measure the flow of one (scene, method); returns the run folder."""
+            scene_scale: float = 50.0, reuse_any: bool = False) -> Path:
+    """Train (unless done) and measure the flow of one (scene, method); returns the run folder.
+
+    A finished run is reused when it was trained with the same command (else SuiteError); with
+    `reuse_any` (--report_only) whatever command it had.
+    """
     run = out / scene / method
     env = dict(os.environ)
     if threads:
         env["OMP_NUM_THREADS"] = str(threads)
+    source, flags = scene_source(scene, priors, scene_scale)
+    cmd = [sys.executable, "train.py", "-s", str(source), "-m", str(run), "--quiet", "--overwrite", *METHODS[method],
+           *extra]
+    if finished(run) and not reuse_any:
+        check_run_command(run, cmd[1:])
     if not finished(run):
-        source, flags = scene_source(scene, priors, scene_scale)
+        check_scene_data(source, priors, scene_scale)
         if not (source / "poses_bounds.npy").is_file():
             subprocess.run([sys.executable, "-m", "baselines.synthetic", "--scene", scene, "--out", str(source), "--quiet",
                             *flags], cwd=ROOT, check=True, env=env)
         # no results.json: never trained, or a torn run (killed): --overwrite clears the latter's files
-        cmd = [sys.executable, "train.py", "-s", str(source), "-m", str(run), "--quiet", "--overwrite", *METHODS[method],
-               *extra]
         run.mkdir(parents=True, exist_ok=True)
         with open(run / "suite_train.log", "w") as log:
             subprocess.run(cmd, cwd=ROOT, check=True, env=env, stdout=log, stderr=subprocess.STDOUT)
@@ -166,7 +201,8 @@ def main(argv: list[str] | None = None) -> int:
         extra, argv = argv[argv.index("--") + 1:], argv[:argv.index("--")]
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", default=",".join(SCENES))
-    parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--methods", default="baseline,reflow",
+                        help=f"comma list of {', '.join(METHODS)} (default: baseline,reflow)")
     parser.add_argument("--out", type=Path, default=None, help="output/suite (output/suite_real with --priors real)")
     parser.add_argument("--jobs", type=int, default=1)
     parser.add_argument("--priors", choices=tuple(PRIORS), default="exact",
@@ -187,8 +223,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.report_only:
         jobs = [(s, m) for s, m in jobs if finished(args.out / s / m) and (args.out / s / m / "flow_metrics.json").is_file()]
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        runs = list(pool.map(lambda job: run_one(job[0], job[1], args.out, extra, threads, args.priors,
-                                                 args.scene_scale), jobs))
+        try:
+            runs = list(pool.map(lambda job: run_one(job[0], job[1], args.out, extra, threads, args.priors,
+                                                     args.scene_scale, reuse_any=args.report_only), jobs))
+        except SuiteError as error:
+            parser.exit(2, f"error: {error}\n")
     rows: dict[str, dict[str, dict]] = {}
     for (scene, method), run in zip(jobs, runs):
         rows.setdefault(scene, {})[method] = summarise(run)

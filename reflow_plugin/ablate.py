@@ -200,6 +200,8 @@ def collect(specs: list[RunSpec]) -> dict[str, dict[str, dict]]:
         row["EPE-test"] = flow["test"]["epe"] if flow.get("available") else None
         row["LPIPS_unavailable"] = metrics.get("LPIPS_unavailable")
         row["comp_init"] = results.get("reflow", {}).get("comp_init")
+        # which initial cloud the run trained from (the check may have replaced the row's own)
+        row["initial_cloud"] = results.get("reflow", {}).get("canonical_check", {}).get("used")
         table.setdefault(spec.scene, {})[spec.row] = row
     return table
 
@@ -228,6 +230,10 @@ def markdown(table: dict[str, dict[str, dict]], rows: list[str]) -> str:
                 notes.add("LPIPS: " + figures["LPIPS_unavailable"])
             if figures.get("comp_init") and row in ("wo_align", "comp_init", "sep", "sep_fullfm", "ours", "external_flow"):
                 notes.add(f"{ROWS[row][0]}: comp_init {figures['comp_init']}")
+            used = figures.get("initial_cloud")
+            if used and not used.startswith("canonical space"):
+                # e.g. "#2 w/o align" whose raw cloud failed the check: it trained from a fallback
+                notes.add(f"{ROWS[row][0]} on {scene}: the initial-cloud check replaced the row's cloud ({used})")
 
         def mean(metric: str):
             got = [v[metric] for v in values if v.get(metric) is not None]

@@ -237,4 +237,7 @@ class CanonicalConstruction:
         dynamic, times = space.dynamic, np.full(len(space.dynamic), np.nan)
         groups = ([DynamicGroup(cameras[self.reference], masks[self.reference], dynamic.points)]
                   if self.reference is not None and masks is not None else [])
+        if groups and self.p.dynamic_keyframes == 1:
+            # the paper's single reference frame: --curriculum_fraction spreads the pairs out from it
+            self.keyframe_times = [cameras[self.reference].time]
         return static, dynamic, times, groups, f"{len(dynamic)} dynamic points (reference frame)"

@@ -268,7 +268,9 @@ class ReFlowParams:
     canonical_max_depth_error: float = param(0.06, "ours, with sparse points (any provider): when the canonical "
                                                   "cloud's median relative depth error against them (per covered "
                                                   "4-px cell) is above this, the dense cloud is not used (the "
-                                                  "host's cloud + part 1 seeds); 0 = no limit", check=_non_negative)
+                                                  "host's cloud + part 1 seeds); 0 = no limit of its own (a cloud of the "
+                                                  "flow provider still has to agree within 2%; --no-canonical_check "
+                                                  "lifts every check)", check=_non_negative)
     canonical_iters: int = param(300, "Adam iterations of each pairwise alignment (keyframe graph, each clip); "
                                       "the inverse-depth refinement runs a fixed 50", check=_non_negative)
     canonical_check: bool = param(True, "check the canonical cloud before training (views, depth against the "

@@ -173,6 +173,7 @@ ERROR_CASES = {
                      "cuda:N"),
     "group not a dict": ("OptimizationParams = 3\n", "OptimizationParams", "must be a dict"),
     "configs in a file": ("RunParams = dict(configs=['x.py'])\n", "RunParams.configs", "_base_"),
+    "overwrite in a file": ("RunParams = dict(overwrite=True)\n", "RunParams.overwrite", "type --overwrite"),
     "merged dict check": ("ModelHiddenParams = dict(kplanes_config={'resolutions': [1]})\n",
                           "ModelHiddenParams.kplanes_config", "resolutions"),
     "bad _base_ type": ("_base_ = 3\n", "_base_", "_base_"),

@@ -211,6 +211,15 @@ def test_hypernerf_bad_metadata_and_scene(copy_of):
     expect_error(root, "dataset.json", "999")
 
 
+def test_hypernerf_scene_without_near_far_loads_without_bounds_and_a_nan_near_is_refused(copy_of):
+    root = copy_of("hypernerf")
+    edit_json(root / "scene.json", lambda d: (d.pop("near", None), d.pop("far", None)))
+    assert load_scene(root, resolution=1).near_far is None  # optional keys: absent means no bounds
+    root = copy_of("hypernerf")
+    edit_json(root / "scene.json", lambda d: d.__setitem__("near", float("nan")))
+    expect_error(root, "scene.json", "near")
+
+
 def test_hypernerf_resolution_without_a_finer_folder(copy_of):
     root = copy_of("hypernerf")
     (root / "rgb" / "1x").rename(root / "rgb" / "2x")

@@ -106,6 +106,12 @@ def test_arguments_a_reader_does_not_read_are_warned_about(mixed, caplog):
     assert [r.getMessage() for r in caplog.records if "not read" in r.getMessage()] == [
         "--llffhold 4 is not read by the dnerf reader (its layout fixes it)"]
     caplog.clear()
+    # the warning comes before the reader runs (mixed's HyperNeRF files are empty stand-ins)
+    with caplog.at_level(logging.WARNING, logger="baselines.data"), pytest.raises(DatasetError):
+        load_scene(mixed, dataset_type="hypernerf", eval=False)  # HyperNeRF's own split, whatever --no-eval says
+    assert [r.getMessage() for r in caplog.records if "not read" in r.getMessage()] == [
+        "--no-eval is not read by the hypernerf reader (its layout fixes it)"]
+    caplog.clear()
     with caplog.at_level(logging.WARNING, logger="baselines.data"):
         load_scene(mixed, dataset_type="nvidia", llffhold=4, eval=True)  # nvidia holds out every 4th frame
     assert not [r for r in caplog.records if "not read" in r.getMessage()]

@@ -30,6 +30,11 @@ def test_start_from_old_folder_reads_its_model_config_or_names_the_config(tiny_s
     trainer = build_trainer([*run, "-m", str(tmp_path / "new")])
     assert trainer.hidden.net_width == 32  # from the old cfg_args, no --configs given
     assert trainer.args.sources["ModelHiddenParams.net_width"].endswith("cfg_args")
+    # the schedule is the family's config (as without --start_checkpoint), not 4DGS's bare defaults
+    assert trainer.opt.prune_min_gaussians == 0 and trainer.opt.opacity_reset_interval == 100_000
+    assert trainer.args.sources["OptimizationParams.prune_min_gaussians"].endswith("synthetic/default.py")
+    # the old run's time cells are kept (its grid's shape), not refitted to this capture's frames
+    assert trainer.hidden.kplanes_config["resolution"] == [32, 32, 32, 12]
     trainer.train()
     assert trainer.ctx.model.num_gaussians > 0
 
@@ -58,3 +63,13 @@ def test_resume_from_a_4dgs_chkpnt_with_numpy_scalars(tiny_scene, tmp_path):
     resumed = build_trainer([*run, "-m", str(tmp_path / "b"), "--iterations", "4", "--start_checkpoint", str(four_dgs)])
     result = resumed.train()
     assert result.final_iteration == 4 and resumed.ctx.model.num_gaussians == first.ctx.model.num_gaussians
+
+
+def test_a_dataset_named_in_a_config_file_is_trained_not_the_embedded_scene(tiny_scene, tmp_path):
+    from baselines.fourdgs.app import resolve_train_args
+
+    config = tmp_path / "cfg.py"
+    config.write_text(f"ModelParams = dict(source_path={str(tiny_scene)!r})\n")
+    resolved = resolve_train_args(["--configs", SYNTHETIC, str(config), "-m", str(tmp_path / "run")])
+    assert not resolved.embedded and resolved.source == tiny_scene
+    assert resolve_train_args(["--configs", SYNTHETIC, "-m", str(tmp_path / "run")]).embedded

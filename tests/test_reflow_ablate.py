@@ -11,11 +11,13 @@ from reflow_plugin import ablate
 from tests.test_trainer import FAST
 
 
-def _fake_done_run(spec: ablate.RunSpec, psnr: float, epe: float | None = 0.5) -> None:
+def _fake_done_run(spec: ablate.RunSpec, psnr: float, epe: float | None = 0.5, used: str | None = None) -> None:
     spec.run_dir.mkdir(parents=True, exist_ok=True)
     results = {"ours_100": {"PSNR": psnr - 1, "SSIM": 0.5}, "ours_200": {
         "PSNR": psnr, "SSIM": 0.9, "LPIPS-vgg": None, "PSNR-dynamic": psnr - 5,
         "LPIPS_unavailable": "no lpips package"}}
+    if used is not None:
+        results["reflow"] = {"canonical_check": {"used": used}}
     (spec.run_dir / "results.json").write_text(json.dumps(results))
     flow = {"ours_200": {"available": epe is not None, "test": {"epe": epe}}}
     (spec.run_dir / "flow_metrics.json").write_text(json.dumps(flow))
@@ -72,14 +74,17 @@ def test_execute_clears_a_torn_folder(tmp_path, monkeypatch):
 def test_table_layout_means_and_notes(tmp_path):
     scenes = [("a", tmp_path), ("b", tmp_path)]
     specs = ablate.plan(scenes, ["baseline", "ours"], tmp_path / "out", [])
-    for spec, psnr in zip(specs, (20.0, 22.0, 24.0, 26.0)):  # a/baseline, a/ours, b/baseline, b/ours
-        _fake_done_run(spec, psnr)
+    used = (None, "canonical space", None, "per-frame fits to the sparse points")  # b/ours: the check's fallback
+    for spec, psnr, cloud in zip(specs, (20.0, 22.0, 24.0, 26.0), used):  # a/baseline, a/ours, b/baseline, b/ours
+        _fake_done_run(spec, psnr, used=cloud)
     text = ablate.write_outputs(ablate.collect(specs), ["baseline", "ours"], tmp_path / "out")
     lines = text.splitlines()
     assert lines[0].startswith("| Method | a PSNR / SSIM / LPIPS | b PSNR / SSIM / LPIPS | Mean")
     assert lines[2] == "| Baseline (4DGS) | 20.00 / 0.900 / - | 24.00 / 0.900 / - | 22.00 / 0.900 / - | 17.00 | 0.500 |"
     assert lines[3].startswith("| Ours | 22.00 / 0.900 / - | 26.00 / 0.900 / - | 24.00")
     assert "- LPIPS: no lpips package" in lines
+    notes = [line for line in lines if "initial-cloud check" in line]
+    assert notes == ["- Ours on b: the initial-cloud check replaced the row's cloud (per-frame fits to the sparse points)"]
     csv_rows = (tmp_path / "out" / "ablation.csv").read_text().splitlines()
     assert csv_rows[0] == "scene,row,PSNR,SSIM,LPIPS-vgg,PSNR-dynamic,EPE-test" and len(csv_rows) == 5
     assert json.loads((tmp_path / "out" / "ablation.json").read_text())["b"]["ours"]["PSNR"] == 26.0

@@ -291,5 +291,8 @@ def test_plugin_uses_the_canonical_space(scene_path, tmp_path):
     finish_run(trainer, trainer.train())
     results = json.loads((out2 / "results.json").read_text())["reflow"]
     assert "(reference frame)" in results["initial_cloud"]
+    # a single reference frame: --curriculum_fraction (0.5) spreads the pairs out from it
+    plugin = trainer.hooks.plugins[0]
+    assert plugin.keyframe_times == [plugin.depth_cameras[plugin.reference].time] and plugin._uses_curriculum
     assert results["canonical"]["alignment"]["mode"] == "none (w/o align)"  # exact disparity: the check passes
     assert results["canonical_check"]["passed"] and not results["canonical_check"]["failures"]

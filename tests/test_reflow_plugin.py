@@ -285,7 +285,7 @@ def test_coarse_stage_freezes_dynamic_gaussians_and_masks_the_loss(built):
     assert torch.equal(plugin.protected_gaussians(ctx), dynamic)
 
 
-def test_short_run_writes_every_output(tiny_scene, tmp_path):
+def test_short_run_writes_every_output(tiny_scene, tmp_path, capsys):
     out = tmp_path / "run"
     trainer = build_trainer(_argv(tiny_scene, out, 10, 30, "--flow_vis_every", "15"))
     result = trainer.train()
@@ -304,8 +304,13 @@ def test_short_run_writes_every_output(tiny_scene, tmp_path):
     log = [json.loads(line) for line in (out / "train_log.jsonl").read_text().splitlines()]
     losses = {k for r in log if r["kind"] == "iter" for k in r.get("losses", {})}
     assert {"reflow/ff_mc", "reflow/cf_mc"} <= losses, losses
+    capsys.readouterr()
     written = render_from_argv(["-m", str(out), "--skip_video"])  # render.py restores the plugin
     assert (written["test"] / "renders" / "00000.png").is_file()
+    # render.py's own --quiet decides, not the training run's (trained with --quiet)
+    assert "[loaded]" in capsys.readouterr().out
+    render_from_argv(["-m", str(out), "--skip_video", "--skip_train", "--quiet"])
+    assert "[loaded]" not in capsys.readouterr().out
 
 
 def test_external_flow_row_trains_and_caches_the_dis_flow(tiny_scene, tmp_path, monkeypatch):

@@ -58,6 +58,18 @@ def test_occlusion_in_partner_mode_is_one_error_line_before_loading(tiny_scene, 
     assert len(err) == 1 and "--enable occlusion needs --pair_mode both" in err[0], err
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+@pytest.mark.parametrize("flags, named", [(["--backend", "gsplat"], "backend='gsplat' cannot run"),
+                                          (["--device", "cuda"], "--device 'cuda' requested")])
+def test_a_backend_or_device_this_machine_lacks_stops_before_the_folder_is_made(tiny_scene, tmp_path, flags, named):
+    from baselines.fourdgs.app import build_trainer
+
+    run = tmp_path / "run"
+    with pytest.raises(ValueError, match=named):
+        build_trainer(["-s", str(tiny_scene), "-m", str(run), "--quiet", *flags])
+    assert not run.exists()  # no folder, no dataset read, no cloud built
+
+
 # ------------------------------------------------------------------ 2, 3. the inverse-depth refinement
 class _Plane:
     """Cameras along x looking at the tilted plane Z = 10 + 0.5 Y; inverse_depth gives the TRUE

@@ -16,7 +16,7 @@ import torch
 from baselines.fourdgs.app import run_cli
 from baselines.fourdgs.evaluate import to_uint8
 from baselines.fourdgs.renderer import render
-from baselines.viewer.app import ViewerApp
+from baselines.viewer.app import MAX_SIDE_RANGE, ViewerApp
 from baselines.viewer.camera import image_size, intrinsics, pose_from_view, vertical_fov, view_from_pose
 from baselines.viewer.cli import main as viewer_main
 from baselines.viewer.render_loop import ClientRenderer
@@ -67,9 +67,10 @@ def test_pictures_of_every_mode_and_selection(run):
 
 
 def test_two_runs_side_by_side_share_the_camera(run):
-    app = ViewerApp([run, run], port=0)
+    app = ViewerApp([run, run], port=0, max_side=MAX_SIDE_RANGE[1])  # every --max_res view.py accepts fits the GUI
     app.start()
     try:
+        assert app.max_side.value == MAX_SIDE_RANGE[1]
         cam = run.train_cameras[0]
         wxyz, position = pose_from_view(cam.viewmat)
         client = types.SimpleNamespace(camera=types.SimpleNamespace(wxyz=wxyz, position=position,

@@ -30,7 +30,8 @@ _COMMON_ARGUMENTS = ("source_path", "images", "resolution", "eval", "white_backg
 # warned about instead of silently dropped. HyperNeRF always uses the dataset's own split.
 IGNORED_ARGUMENTS = {"hypernerf": ("images", "eval", "llffhold"), "dnerf": ("images", "llffhold"),
                      "panoptic": ("images", "llffhold")}
-_ARGUMENT_FLAGS = {"images": ("-i/--images", "images"), "llffhold": ("--llffhold", 8)}
+# flag and default of each; --eval's default is True (4DGS's), so the one to warn about is --no-eval
+_ARGUMENT_FLAGS = {"images": ("-i/--images", "images"), "llffhold": ("--llffhold", 8), "eval": ("--no-eval", True)}
 
 # "synthetic": baselines.synthetic writes the NVIDIA layout (its family config is chosen from the name)
 ALIASES = {"llff": "nvidia", "dynamicnerf": "nvidia", "synthetic": "nvidia", "blender": "dnerf", "nerfies": "hypernerf"}
@@ -92,10 +93,11 @@ def load_scene(source_path: Path | str, dataset_type: str | None = "auto", image
                            f"(it accepts: {', '.join(sorted(accepted)) or 'none'})")
     if kind != "nvidia" and (source / POSES_FILE).is_file():
         check_poses_bounds(source, images)  # a NaN there must not pass unnoticed, whatever reads the folder
-    for name, value in (("images", images), ("llffhold", llffhold)):
+    for name, value in (("images", images), ("llffhold", llffhold), ("eval", eval)):
         flag, default = _ARGUMENT_FLAGS[name]
         if name in IGNORED_ARGUMENTS.get(kind, ()) and value != default:
-            log.warning("%s %s is not read by the %s reader (its layout fixes it)", flag, value, kind)
+            given = flag if name == "eval" else f"{flag} {value}"
+            log.warning("%s is not read by the %s reader (its layout fixes it)", given, kind)
     scene = reader(source, images=images, resolution=resolution, eval=eval,
                    white_background=white_background, llffhold=llffhold, **options)
     chosen = detection.as_dict() if detection else {"picked": kind, "because": "--dataset_type"}

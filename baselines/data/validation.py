@@ -91,6 +91,10 @@ def json_array(data: Any, key: str, source: Path, shape: tuple[int, ...] | None 
 
 
 def json_float(data: Any, key: str, source: Path, default: Any = ..., positive: bool = False) -> float:
+    """`data[key]` as a finite float (DatasetError naming `source` and the key otherwise); a missing key
+    gives `default` as it is (NaN included: "absent"), or an error when no default is given."""
+    if default is not ... and isinstance(data, dict) and key not in data:
+        return default
     value = json_key(data, key, source, default)
     try:
         number = float(value)

@@ -22,6 +22,7 @@ from baselines import thread_policy
 from baselines.cli_exit import flag_value as _flag_value, has_flag as _has_flag
 from baselines.cli_exit import interrupted_line, resume_command, run_cli  # noqa: F401  (train.py, render.py, tests)
 from baselines.machine import training_machine
+from baselines.render.backends import resolve_backend
 from baselines.run_folder import (FolderPlan, RunFolder, RunIdentity, TrainingInterrupted, check_run_folder,
                                   RunLock, check_saved_iteration, check_typed_model_path, default_model_path, require_run_record)
 
@@ -29,7 +30,7 @@ from .evaluate import EvalResult, evaluate_cameras, render_video, write_metrics
 from .family_config import (dataset_family, default_config, family_background, fit_time_cells, log_decision,
                             strip_bare_defaults)
 from .plugins import Plugin, load_plugin_class, resolve_components
-from .trainer import Trainer, TrainResult
+from .trainer import Trainer, TrainResult, resolve_device
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 EMBEDDED_SCENE = "skating"
@@ -63,48 +64,81 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def build_trainer(argv: list[str]) -> Trainer:
-    """Parse, validate and load everything a run needs; return a Trainer ready to train."""
+@dataclass
+class ResolvedArgs:
+    """A train.py command line resolved (flags, config files, plugins, components); nothing loaded."""
+
+    args: object  # arguments.TrainArgs
+    embedded: bool  # no dataset given (typed or in a config file): the embedded synthetic scene
+    source: Path
+    plugin_classes: list[type[Plugin]]
+    components: dict[str, frozenset[str]]
+    decision: object  # family_config's ConfigDecision, or None when the user chose the configs
+    model_from_old_run: bool  # the model hyperparameters are --start_checkpoint's folder's (fixed shapes)
+
+
+def resolve_train_args(argv: list[str]) -> ResolvedArgs:
+    """Plugins, flags and config files of a train.py command line (no file but configs is read).
+
+    Config files: `--configs` when typed; else the detected family's file (family_config.py),
+    also when continuing from an output folder (`--start_checkpoint OLD[/point_cloud/iteration_N]`),
+    where OLD's saved model hyperparameters go over it so that OLD's files fit the model.
+    """
     from arguments import parse_train_args, peek_plugins
     from arguments.saved import model_dir_of_checkpoint
 
-    typed = list(argv)
     argv, bare_defaults = strip_bare_defaults(list(argv))
-    embedded = not _has_flag(argv, "-s", "--source_path")
+    typed_source = _has_flag(argv, "-s", "--source_path")
 
     # Plugins first: they contribute parameter groups that the full parse must know.
     plugin_names = peek_plugins(argv)
     plugin_classes = [load_plugin_class(name) for name in plugin_names]
     decision = None
     old_run = model_dir_of_checkpoint(_flag_value(argv, "--start_checkpoint"))
-    if not bare_defaults and not _has_flag(argv, "--configs") and old_run is None:
-        # 4DGS's bare defaults fit no dataset: the detected family's config (family_config.py);
-        # a run continued from an output folder takes that folder's saved configuration instead
+    user_configs = _has_flag(argv, "--configs")
+    if not bare_defaults and not user_configs:
+        # 4DGS's bare defaults fit no dataset: the detected family's config (family_config.py)
         source_flag = _flag_value(argv, "-s", "--source_path") or ""
-        source = REPO_ROOT / "data" / "synthetic" / EMBEDDED_SCENE if embedded else Path(source_flag)
+        source = Path(source_flag) if typed_source else REPO_ROOT / "data" / "synthetic" / EMBEDDED_SCENE
         decision = default_config(source, plugin_names, _flag_value(argv, "--dataset_type") or "auto",
-                                  family="synthetic" if embedded else None)
+                                  family=None if typed_source else "synthetic")
         log_decision(decision)
         if decision.path is not None:
             argv += ["--configs", str(decision.path)]
     extra_groups: dict[str, type] = {}
     for cls in plugin_classes:
         extra_groups.update(cls.param_groups)
-    args = parse_train_args(argv, extra_groups=extra_groups)
+    args = parse_train_args(argv, extra_groups=extra_groups,
+                            saved_model_over_configs=old_run is not None and not user_configs)
     components = resolve_components(plugin_classes, args.run.disable, args.run.enable)
-    seed_everything(args.opt.seed)
-
+    # a dataset named in a --configs file counts as given (config.json of a run names its own)
+    embedded = not typed_source and not args.model.source_path
     source = REPO_ROOT / "data" / "synthetic" / EMBEDDED_SCENE if embedded else Path(args.model.source_path)
-    folder = _check_model_folder(args, typed, source, plugin_classes, components)  # before any long work
+    model_from_old_run = old_run is not None and not user_configs
+    return ResolvedArgs(args, embedded, source, plugin_classes, components, decision, model_from_old_run)
+
+
+def build_trainer(argv: list[str]) -> Trainer:
+    """Parse, validate and load everything a run needs; return a Trainer ready to train."""
+    typed = list(argv)
+    resolved = resolve_train_args(argv)
+    args = resolved.args
+    seed_everything(args.opt.seed)
+    # --device cuda without CUDA, --backend gsplat where it cannot run: one line before any folder or data
+    resolve_backend(args.pipe.backend, resolve_device(args.pipe.device))
+    folder = _check_model_folder(args, typed, resolved.source, resolved.plugin_classes,
+                                 resolved.components)  # before any long work
     try:
-        return _load_and_claim(args, folder, source, embedded, plugin_classes, components, decision)
+        return _load_and_claim(args, folder, resolved.source, resolved.embedded, resolved.plugin_classes,
+                               resolved.components, resolved.decision,
+                               fit_cells=not resolved.model_from_old_run)
     except BaseException:
         folder.release()  # a bad input found after the lock: the folder goes back to how it was
         raise
 
 
 def _load_and_claim(args, folder: RunFolder, source: Path, embedded: bool, plugin_classes: list[type[Plugin]],
-                    components: dict[str, frozenset[str]], decision) -> Trainer:
+                    components: dict[str, frozenset[str]], decision, fit_cells: bool = True) -> Trainer:
     """build_trainer's second half, under the folder's lock: load the dataset, commit the folder."""
     from arguments import write_cfg_args
     from baselines.data import load_scene
@@ -139,7 +173,7 @@ def _load_and_claim(args, folder: RunFolder, source: Path, embedded: bool, plugi
                 if scene.test_cameras and honours_eval else "")
         raise ValueError(f"{source}: {len(scene.train_cameras)} training frame(s)"
                          f"{_frame_needs(plugins, len(scene.train_cameras))}{held}")
-    if decision is not None and decision.path is not None:
+    if decision is not None and decision.path is not None and fit_cells:  # not an old run's fixed grid
         _fit_time_cells(args, scene)
     model_path = folder.path
     folder.commit()
@@ -360,6 +394,7 @@ def load_run(argv: list[str]) -> LoadedRun:
     )
     plugins = [cls({g: args.extra[g] for g in cls.param_groups}, components[cls.name]) for cls in plugin_classes]
     trainer = Trainer(args, scene, plugins, model_path)
+    trainer.run_log.quiet = args.render.quiet  # this command's --quiet, not the training run's saved one
     trainer.load_model_from(pc_dir)
     return LoadedRun(trainer, args, iteration)
 
@@ -378,7 +413,6 @@ def render_from_argv(argv: list[str]) -> dict[str, Path]:
         root.setLevel(logging.WARNING)  # warnings and the written folders only
     try:
         loaded = load_run(argv)
-        loaded.trainer.run_log.quiet = loaded.trainer.run_log.quiet or loaded.args.render.quiet
         lock = RunLock(loaded.trainer.ctx.model_path).acquire()  # no training or other render writes here meanwhile
         try:
             return _render_locked(loaded)

@@ -32,6 +32,8 @@ from .frame import ViewerMode
 from .render_loop import ClientRenderer
 from .runs import SELECTIONS, ViewerRun
 
+MAX_SIDE_RANGE = (64, 4096)  # px, the still picture's longer side: --max_res and the GUI slider alike
+
 HOST = "127.0.0.1"  # localhost only: the viewer has no authentication
 SEPARATOR = 4  # px between the two runs' halves
 PLAY_FPS = 8.0
@@ -141,7 +143,7 @@ class ViewerApp:
             self.selection = server.gui.add_dropdown("Gaussians", SELECTIONS, initial_value="both",
                                                      visible=any(run.has_split for run in self.runs),
                                                      hint="static / dynamic split of the deformation table")
-            self.max_side = server.gui.add_slider("max resolution", min=64, max=2048, step=32,
+            self.max_side = server.gui.add_slider("max resolution", min=MAX_SIDE_RANGE[0], max=MAX_SIDE_RANGE[1], step=32,
                                                   initial_value=self.initial_max_side,
                                                   hint="longer side of the still picture, in pixels")
             self.color_scale = server.gui.add_number("colour scale", initial_value=self.initial_color_scale,

@@ -18,7 +18,7 @@ import time
 
 from baselines.fourdgs.app import require_run
 
-from .app import ViewerApp, check_port_free
+from .app import MAX_SIDE_RANGE, ViewerApp, check_port_free
 from .runs import ViewerRun
 
 
@@ -36,8 +36,9 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     args, rest = parser.parse_known_args(argv)
     if len(args.model_path) > 2:
         raise ValueError(f"-m given {len(args.model_path)} times: the viewer shows one run or two side by side")
-    if not 64 <= args.max_res <= 4096:
-        raise ValueError(f"--max_res must be in [64, 4096], got {args.max_res}")
+    low, high = MAX_SIDE_RANGE
+    if not low <= args.max_res <= high:
+        raise ValueError(f"--max_res must be in [{low}, {high}], got {args.max_res}")
     if not args.color_scale >= 0.0:
         raise ValueError(f"--color_scale must be >= 0, got {args.color_scale}")
     if args.time is not None and not 0.0 <= args.time <= 1.0:
