@@ -96,6 +96,7 @@ def resolve_train_args(argv: list[str]) -> ResolvedArgs:
     decision = None
     old_run = model_dir_of_checkpoint(_flag_value(argv, "--start_checkpoint"))
     user_configs = _has_flag(argv, "--configs")
+    model_from_old_run = old_run is not None and not user_configs  # OLD's model settings over the family's
     if not bare_defaults and not user_configs:
         # 4DGS's bare defaults fit no dataset: the detected family's config (family_config.py)
         source_flag = _flag_value(argv, "-s", "--source_path") or ""
@@ -108,13 +109,11 @@ def resolve_train_args(argv: list[str]) -> ResolvedArgs:
     extra_groups: dict[str, type] = {}
     for cls in plugin_classes:
         extra_groups.update(cls.param_groups)
-    args = parse_train_args(argv, extra_groups=extra_groups,
-                            saved_model_over_configs=old_run is not None and not user_configs)
+    args = parse_train_args(argv, extra_groups=extra_groups, saved_model_over_configs=model_from_old_run)
     components = resolve_components(plugin_classes, args.run.disable, args.run.enable)
     # a dataset named in a --configs file counts as given (config.json of a run names its own)
     embedded = not typed_source and not args.model.source_path
     source = REPO_ROOT / "data" / "synthetic" / EMBEDDED_SCENE if embedded else Path(args.model.source_path)
-    model_from_old_run = old_run is not None and not user_configs
     return ResolvedArgs(args, embedded, source, plugin_classes, components, decision, model_from_old_run)
 
 
