@@ -259,9 +259,18 @@ def _read_pid(fd: int) -> int | None:
 
 
 def _holds_run(folder: Path) -> bool:
+    """Whether `folder` holds a run's files; False once it is gone.
+
+    A second run started at the same moment may remove the empty folder it probed or created
+    (`_writable_error`, `RunLock._undo_folder`) between our is_dir() and iterdir(): a folder that
+    vanished holds no run, and the lock taken next settles which of the two trains.
+    """
     if (folder / RUN_FILE).exists() or any((folder / m).exists() for m in LEGACY_MARKERS):
         return True
-    return any(CHECKPOINT_PATTERN.fullmatch(p.name) for p in folder.iterdir())
+    try:
+        return any(CHECKPOINT_PATTERN.fullmatch(p.name) for p in folder.iterdir())
+    except FileNotFoundError:
+        return False
 
 
 def _writable_error(folder: Path, attempts_left: int = 2) -> str | None:

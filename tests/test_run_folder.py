@@ -206,6 +206,26 @@ def test_implicit_output_folder_is_never_reused_and_a_killed_run_is_named(tmp_pa
         check_run_folder(base, RunIdentity.of([], {}))
 
 
+def test_folder_removed_by_a_racing_run_between_checks_is_a_free_folder(tmp_path, monkeypatch):
+    """A second run started at the same moment removes the empty folder it probed between our
+    is_dir() and the listing of the folder: that folder holds no run (was: an OSError line)."""
+    from baselines import run_folder
+    from baselines.run_folder import RunIdentity, check_run_folder
+
+    folder = tmp_path / "out"
+    folder.mkdir()
+    real_read = run_folder.read_run_record
+
+    def read_then_vanish(path):
+        record = real_read(path)
+        folder.rmdir()  # the other run's probe cleans up here
+        return record
+
+    monkeypatch.setattr(run_folder, "read_run_record", read_then_vanish)
+    plan = check_run_folder(folder, RunIdentity.of([], {}))
+    assert plan.path == folder and not plan.clear and not plan.continuing
+
+
 def test_lock_survives_another_run_removing_the_folder_mid_mkdir(tmp_path, monkeypatch):
     """Path.mkdir's FileExistsError when the folder vanished between its mkdir and its is_dir() check
     (another run released the empty folder it had created) is a race, not an error; a FILE is one."""
