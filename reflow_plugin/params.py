@@ -31,6 +31,35 @@ DYNAMIC_AABB_MARGIN = 0.25  # dynamic HexPlane box: the dynamic points' box grow
 TIME_SCALE_LR = 0.005  # learning rate of the keyframe seeds' log temporal window widths
 WINDOW_CULL = 1e-3  # keyframe copies whose window weight is below this are not deformed: exact below 1/255
 FLOW_CLOUD_MAX_DEPTH_ERROR = 0.02  # a flow-provider canonical cloud against the SfM points (canonical_construction.py)
+# The flow provider's partners on a sequence: frames n +- 1 .. n +- spread (canonical/providers.py,
+# fused_depth). Not a flag: an A/B switch until the real-capture benchmark has measured it in training
+# (docs/REAL_CAPTURES.md, "The canonical space on DAVIS").
+# Likewise the finest pyramid level of its DIS flow (0 = full resolution; unset: the preset's 1, half).
+FLOW_SPREAD_SWITCH = "REFLOW4DGS_FLOW_SPREAD"
+FLOW_FINEST_SWITCH = "REFLOW4DGS_FLOW_FINEST"
+
+
+def _env_int(name: str, default: int | None, low: int, meaning: str) -> int | None:
+    import os
+
+    text = os.environ.get(name, "").strip()
+    if not text:
+        return default
+    if not text.isdigit() or int(text) < low:
+        raise ValueError(f"{name}={text!r}: must be an integer >= {low} ({meaning})")
+    return int(text)
+
+
+def flow_spread_from_env() -> int:
+    """`REFLOW4DGS_FLOW_SPREAD` as an integer >= 1 (unset or empty: 1, the time neighbours only);
+    anything else is a ValueError naming the variable."""
+    return _env_int(FLOW_SPREAD_SWITCH, 1, 1, "1 = the time neighbours only")
+
+
+def flow_finest_from_env() -> int | None:
+    """`REFLOW4DGS_FLOW_FINEST` as an integer >= 0 (unset or empty: None, DIS's preset); anything
+    else is a ValueError naming the variable."""
+    return _env_int(FLOW_FINEST_SWITCH, None, 0, "the finest DIS pyramid level, 0 = full resolution")
 
 
 def _removed(what: str, why: str) -> str:

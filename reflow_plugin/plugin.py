@@ -65,7 +65,8 @@ from .labels import aligned_depths, training_masks
 from .matching import DYNAMIC_KEY, FLOW_KEY, MatchingConfig, check_occlusion_mode, flow_losses
 from .pairs import PairSampler
 from .params import (DYNAMIC_AABB_MARGIN, DYNAMIC_INIT_OPACITY, FLOW_MIN_ALPHA, OCCLUSION_ALPHA1, OCCLUSION_ALPHA2,
-                     PHOTO_SSIM_WEIGHT, WINDOW_CULL, ReFlowParams, resolve_static_decoder)
+                     PHOTO_SSIM_WEIGHT, WINDOW_CULL, ReFlowParams, flow_finest_from_env, flow_spread_from_env,
+                     resolve_static_decoder)
 from .separated_modeling import SeparatedModeling
 from .separation import SeparatedDeformation
 from .upgrade import upgrade_4dgs_model, written_by_reflow
@@ -89,6 +90,7 @@ class ReFlowPlugin(CanonicalConstruction, SeparatedModeling, FlowMatching, Plugi
         super().__init__(params, enabled)
         self.p: ReFlowParams = self.params.get("ReFlowParams") or ReFlowParams()
         self.static_decoder = resolve_static_decoder(self.p.static_decoder, self.is_enabled("separation"))
+        flow_spread_from_env(), flow_finest_from_env()  # bad values are refused here, before any data is read
         self.sampler: PairSampler | None = None
         self.masks: list[np.ndarray] | None = None  # per training camera (uid order), True = dynamic
         self.depth_cameras: list = []  # the training cameras as the depth steps read them (initial_point_cloud)

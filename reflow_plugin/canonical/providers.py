@@ -29,6 +29,12 @@ Providers:
            basketball at -r 4 (benchmarks/rig_pairs.py; sparse points the guide did NOT read):
            median relative depth error 1.5%, the guide alone 5.8%; the time neighbours from zero
            left 12 of 23 pairs without a confident pixel there and 34% error on the rest.
+           A/B switches (defaults unchanged until measured in training): `spread` k > 1 fuses
+           every frame within k of a sequence (`fused_depth`; REFLOW4DGS_FLOW_SPREAD), and
+           `finest_scale` sets DIS's finest pyramid level (the preset's is 1, half resolution;
+           REFLOW4DGS_FLOW_FINEST). DAVIS at 160x90 (benchmarks/canonical_flow.py): the time
+           neighbours leave 0 of 11 clips within the check's 2%, k = 4 at full resolution without
+           the alignment 3.
 
 A learned model (DUSt3R, MonST3R) plugs in by subclassing PointmapProvider: `pair` returns the
 network's (X_i^i, X_j^i, C_i^i, C_j^i) resampled to the grid and `depth(n)` the z channel of
@@ -36,6 +42,7 @@ X_n^n from any pair containing n. We ship none (no weights download).
 """
 from __future__ import annotations
 
+import warnings
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,6 +57,9 @@ from ..rig import pose_groups, viewing_angle_deg, wide_rig
 from .geometry import backproject, grid, relative, to_camera, to_world
 
 MIN_ANGLE_DEG = 2.0
+FUSED_AGREEMENT = 0.05  # fused depth: relative spread of the partners' inverse depths at confidence 1/e
+FUSED_MIN_PARALLAX_PX = 1.0  # fused depth: full confidence from this parallax (px) of the widest partner
+FUSED_SATURATION_PX = 2.0  # fused depth: a partner's weight stops growing at this parallax (px)
 GUIDE_SOFTENING = 0.05  # guide_depth: the inverse-distance weights' softening, a fraction of the image width
 GUIDE_CHUNK = 1 << 22  # guide_depth: pixel x point weights computed at once
 
@@ -240,28 +250,44 @@ class FlowProvider(PointmapProvider):
 
     name = "flow"
 
-    def __init__(self, cameras: Sequence[Camera], stride: int = 1, anchors: np.ndarray | None = None) -> None:
+    def __init__(self, cameras: Sequence[Camera], stride: int = 1, anchors: np.ndarray | None = None,
+                 spread: int = 1, finest_scale: int | None = None) -> None:
         super().__init__(cameras, stride)
+        if int(spread) < 1:
+            raise ValueError(f"flow provider: spread must be >= 1 (got {spread})")
+        if finest_scale is not None and int(finest_scale) < 0:
+            raise ValueError(f"flow provider: finest_scale must be >= 0 (got {finest_scale})")
+        self.spread = int(spread)
         self._flows: dict[tuple[int, int], np.ndarray] = {}
         self._dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        # the preset stops at half resolution (level 1): at 160x90 a flow of 80x45
+        self.finest_scale = None if finest_scale is None else int(finest_scale)
+        if self.finest_scale is not None:
+            self._dis.setFinestScale(self.finest_scale)
         order = sorted(range(len(self.cameras)), key=lambda k: (self.cameras[k].time, self.cameras[k].frame_index))
         self.rig = wide_rig([self.viewmats[k] for k in order])
         self.groups = pose_groups(self.viewmats)
         self.anchors = None if anchors is None or len(anchors) == 0 else np.asarray(anchors, np.float64)
         self._guides: dict[int, np.ndarray | None] = {}
 
+    @property
+    def fused(self) -> bool:
+        """Whether `depth` fuses every partner within `spread` frames (a sequence, spread > 1)."""
+        return not self.rig and self.spread > 1
+
     def key(self) -> str:
+        dis = "" if self.finest_scale is None else f"|finest={self.finest_scale}"
         if not self.rig:
-            return super().key()
-        return f"{super().key()}|rig" + ("|guided" if self.anchors is not None else "")
+            return super().key() + (f"|spread={self.spread}" if self.fused else "") + dis
+        return f"{super().key()}|rig" + ("|guided" if self.anchors is not None else "") + dis
 
     def partners(self, n: int) -> list[int]:
-        """The frames n is triangulated with: its time neighbours n - 1, n + 1 (frames are in time
-        order), or on a wide rig the nearest frame in time of each of the two camera poses whose
-        viewing direction is closest to n's (a different pose: a baseline to triangulate; a wide
-        rig has at least two poses)."""
+        """The frames n is triangulated with: its time neighbours n - k, n + k for k = 1 ..
+        `spread` (frames are in time order), or on a wide rig the nearest frame in time of each of
+        the two camera poses whose viewing direction is closest to n's (a different pose: a
+        baseline to triangulate; a wide rig has at least two poses)."""
         if not self.rig:
-            return [m for m in (n - 1, n + 1) if 0 <= m < len(self.cameras)]
+            return [m for k in range(1, self.spread + 1) for m in (n - k, n + k) if 0 <= m < len(self.cameras)]
         best: dict[int, tuple[float, float, int]] = {}
         for m in range(len(self.cameras)):
             group = int(self.groups[m])
@@ -304,16 +330,24 @@ class FlowProvider(PointmapProvider):
             self._flows[(i, j)] = self._dis.calc(_grey(self.cameras[i]), _grey(self.cameras[j]), start)
         return self._flows[(i, j)]
 
+    def fb_error(self, i: int, j: int, full: bool = False) -> np.ndarray:
+        """[h, w] squared forward-backward error (px^2) of flow i -> j on frame i's grid pixels
+        (about 1e12 where the flow leaves frame j)."""
+        rows, cols = self.grid(full)
+        f = self.flow(i, j)[np.ix_(rows, cols)]
+        u = cols[None, :] + 0.5 + f[..., 0]
+        v = rows[:, None] + 0.5 + f[..., 1]
+        back = cv2.remap(self.flow(j, i), (u - 0.5).astype(np.float32), (v - 0.5).astype(np.float32),
+                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(1e6, 1e6))
+        return ((f + back) ** 2).sum(-1)
+
     def triangulate(self, i: int, j: int, full: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """(world points [h, w, 3] of frame i's grid pixels, confidence [h, w]) from flow i -> j."""
         rows, cols = self.grid(full)
-        fwd, bwd = self.flow(i, j), self.flow(j, i)
-        f = fwd[np.ix_(rows, cols)]
+        f = self.flow(i, j)[np.ix_(rows, cols)]
         u = cols[None, :] + 0.5 + f[..., 0]
         v = rows[:, None] + 0.5 + f[..., 1]
-        back = cv2.remap(bwd, (u - 0.5).astype(np.float32), (v - 0.5).astype(np.float32), cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=(1e6, 1e6))
-        fb = ((f + back) ** 2).sum(-1)
+        fb = self.fb_error(i, j, full)
         Ki_inv, Kj_inv = np.linalg.inv(self.K[i]), np.linalg.inv(self.K[j])
         Ri, Rj = self.viewmats[i][:3, :3], self.viewmats[j][:3, :3]
         ci = -Ri.T @ self.viewmats[i][:3, 3]
@@ -339,9 +373,12 @@ class FlowProvider(PointmapProvider):
         return points, np.where(ok, conf, 0.0)
 
     def depth(self, n: int, full: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Triangulated with both `partners`; per pixel the more confident one."""
+        """Triangulated with the `partners`: per pixel the more confident of the two, or with
+        `spread` > 1 on a sequence their fusion (`fused_depth`)."""
         if len(self.cameras) < 2:
             raise ValueError("flow provider: a single frame has no flow to triangulate")
+        if self.fused:
+            return self.fused_depth(n, full)
         best_z, best_c = None, None
         for m in self.partners(n):
             points, conf = self.triangulate(n, m, full)
@@ -354,6 +391,57 @@ class FlowProvider(PointmapProvider):
         good = best_c > 0
         fill = float(np.median(best_z[good])) if good.any() else 1.0
         return np.where(good, best_z, fill), best_c
+
+    def fused_depth(self, n: int, full: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(z-depth [h, w], confidence [h, w]) of frame n from every partner within `spread` frames.
+
+        A camera that pans more than it moves gives neighbouring frames a triangulation angle of a
+        fraction of a degree (DAVIS at 160x90: 0.26 degrees between frames n and n + 1 of dog),
+        where a tenth of a pixel of flow error is several percent of depth. Farther partners see a
+        wider angle but flow that is harder to match. Per pixel each partner m gives an inverse depth
+        u_m; its error is about (flow error) / (parallax), the parallax in pixels being
+        p_m = focal x |c_m - c_n| x u_ref (camera centres; u_ref the plain median of the u_m, so a
+        flow that went wrong does not inflate its own weight). Beyond a few pixels the flow's own
+        error grows with the displacement, so the weight is exp(-|forward-backward error|^2 / 2) x
+        min(p_m, FUSED_SATURATION_PX)^2: a slow pan leans on its far partners, a fast one weighs
+        them all alike. The depth is the weighted median of the u_m (robust to a failed partner).
+        Confidence: exp(-(s / FUSED_AGREEMENT)^2), s = the weighted mean |u_m - u| / u, the
+        partners' relative disagreement, times min(1, p / FUSED_MIN_PARALLAX_PX), p = focal x
+        baseline x u the parallax in pixels of the widest partner at the fused depth (partners
+        that agree because none of them moved measure nothing).
+        """
+        ci = -self.viewmats[n][:3, :3].T @ self.viewmats[n][:3, 3]
+        inverse, flow_terms, baselines = [], [], []
+        for m in self.partners(n):
+            points, conf = self.triangulate(n, m, full)
+            z = to_camera(points, self.viewmats[n])[..., 2]
+            baseline = float(np.linalg.norm(ci + self.viewmats[m][:3, :3].T @ self.viewmats[m][:3, 3]))
+            usable = (conf > 0) & (z > 0) & np.isfinite(z)
+            inverse.append(np.where(usable, 1.0 / np.where(usable, z, 1.0), np.nan))
+            # triangulate's confidence without its angle factor
+            flow_terms.append(np.where(usable, np.exp(-self.fb_error(n, m, full) / 2.0), 0.0))
+            baselines.append(np.where(usable, baseline, 0.0))
+        u, b = np.stack(inverse), np.stack(baselines)  # [K, h, w]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels: no partner usable
+            reference = np.nan_to_num(np.nanmedian(u, axis=0), nan=0.0)
+        u = np.nan_to_num(u, nan=0.0)
+        w = np.stack(flow_terms) * np.minimum(self.K[n][0, 0] * b * reference[None], FUSED_SATURATION_PX) ** 2
+        order = np.argsort(u, axis=0)
+        u_sorted, w_sorted = np.take_along_axis(u, order, 0), np.take_along_axis(w, order, 0)
+        cumulative = np.cumsum(w_sorted, 0)
+        total = cumulative[-1]
+        middle = (cumulative < 0.5 * total[None]).sum(0).clip(max=len(u) - 1)
+        fused = np.take_along_axis(u_sorted, middle[None], 0)[0]
+        good = (total > 0) & (fused > 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            spread = (w * np.abs(u - fused[None])).sum(0) / np.where(good, total * fused, 1.0)
+        parallax = self.K[n][0, 0] * b.max(0) * np.where(good, fused, 0.0)
+        conf = np.where(good, np.exp(-(spread / FUSED_AGREEMENT) ** 2)
+                        * np.minimum(1.0, parallax / FUSED_MIN_PARALLAX_PX), 0.0)
+        z = np.where(good, 1.0 / np.where(good, fused, 1.0), 0.0)
+        fill = float(np.median(z[good])) if good.any() else 1.0
+        return np.where(good, z, fill), conf
 
     def pair(self, i: int, j: int) -> PairPrediction:
         Pi, Ci = self.triangulate(i, j)

@@ -33,6 +33,7 @@ from baselines.data import Camera, PointCloud
 from baselines.fourdgs.checkpoint import atomic_write_ply
 
 from ..disparity import fit_frames, sparse_votes, summary
+from ..params import flow_finest_from_env, flow_spread_from_env
 from . import cache
 from .coarse_to_fine import align_sequence, unaligned
 from .inverse import align_inverse
@@ -64,6 +65,8 @@ class CanonicalOptions:
     inverse_iterations: int = 50  # Adam steps of that refinement
     mask_dynamic: bool = True  # pixels in the motion masks carry no weight in the alignment
     dynamic_points: int = 20_000
+    flow_spread: int = 1  # flow provider on a sequence: partners n +- 1 .. n +- flow_spread (>1: fused_depth)
+    flow_finest_scale: int | None = None  # flow provider: DIS's finest pyramid level (None: the preset's)
     depth_source: str = "disparity"  # depth provider: disparity (dataset) | gt (simulator gt/depth)
     noise: float = 0.0  # depth_source=gt only: controlled errors (providers.DepthProvider)
     drift: float = 0.0
@@ -106,7 +109,8 @@ def options_from_params(p: Any) -> CanonicalOptions:
                             consistency=p.canonical_consistency,
                             iterations=p.canonical_iters,
                             cache=p.canonical_cache,
-                            dynamic_points=p.seed_points)
+                            dynamic_points=p.seed_points, flow_spread=flow_spread_from_env(),
+                            flow_finest_scale=flow_finest_from_env())
 
 
 def make_provider(cameras: Sequence[Camera], source_path: Path | None, options: CanonicalOptions,
@@ -121,7 +125,8 @@ def make_provider(cameras: Sequence[Camera], source_path: Path | None, options: 
     if name == "auto":
         name = "depth" if options.depth_source == "gt" or all(c.disparity is not None for c in cameras) else "flow"
     if name == "flow":
-        return FlowProvider(cameras, stride, anchors)
+        return FlowProvider(cameras, stride, anchors, spread=options.flow_spread,
+                            finest_scale=options.flow_finest_scale)
     return DepthProvider(cameras, stride, options.depth_source, source_path, options.noise, options.drift,
                          options.outliers, options.seed)
 
@@ -211,7 +216,9 @@ def build_canonical_space(scene: Any, masks: Sequence[np.ndarray] | None, option
     cameras = [c.to("cpu") for c in scene.train_cameras]
     masks = _check_masks(cameras, masks)
     provider = make_provider(cameras, getattr(scene, "source_path", None), options, anchors)
-    settings = {k: v for k, v in asdict(options).items() if k not in ("cache", "device")}
+    # the flow_* settings are in provider.key() where they change anything
+    settings = {k: v for k, v in asdict(options).items()
+                if k not in ("cache", "device", "flow_spread", "flow_finest_scale")}
     settings["anchors"] = _points_key(anchors)
     key = cache.cache_key(cameras, masks, provider.key(), settings)
     folder = Path(cache_dir) if cache_dir is not None and options.cache else None
