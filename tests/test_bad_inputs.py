@@ -17,6 +17,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -79,12 +80,28 @@ def _one_frame(scene: Path) -> None:
 _HELD_LOCKS: list = []  # locks this process holds for a case's subprocess (released at exit)
 
 
+_TRAINED_LOCK = threading.Lock()
+_TRAINED: dict[tuple[str, ...], Path] = {}  # extra flags -> the finished run the cases copy
+
+
 def _trained(scene: Path, work: Path, *extra: str) -> Path:
-    """A finished short run (fine iteration 1 saved, checkpointed) in work/first, trained in a subprocess."""
+    """A finished short run (fine iteration 1 saved, checkpointed) in work/first.
+
+    Trained once per set of `extra` flags, in a subprocess, on its own copy of the first caller's
+    scene (beside that caller's work folder), then copied for each case: the cases only read or
+    break their copy, and each training subprocess costs a torch import and a save."""
+    key = tuple(extra)
+    with _TRAINED_LOCK:
+        if key not in _TRAINED:
+            template = work.parent / f"trained{len(_TRAINED)}"
+            shutil.copytree(scene, template / "scene")
+            env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
+            subprocess.run([sys.executable, *_train("-s", str(template / "scene"), "-m", str(template / "run"), *SHORT,
+                                                    "--checkpoint_iterations", "1", *extra)],
+                           cwd=ROOT, env=env, check=True, capture_output=True, timeout=300)
+            _TRAINED[key] = template / "run"
     run = work / "first"
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
-    subprocess.run([sys.executable, *_train("-s", str(scene), "-m", str(run), *SHORT, "--checkpoint_iterations", "1",
-                                            *extra)], cwd=ROOT, env=env, check=True, capture_output=True, timeout=300)
+    shutil.copytree(_TRAINED[key], run)
     return run
 
 

@@ -343,6 +343,11 @@ class FlowProvider(PointmapProvider):
 
     def triangulate(self, i: int, j: int, full: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """(world points [h, w, 3] of frame i's grid pixels, confidence [h, w]) from flow i -> j."""
+        points, conf, _ = self._triangulate_with_fb(i, j, full)
+        return points, conf
+
+    def _triangulate_with_fb(self, i: int, j: int, full: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`triangulate`'s points and confidence, and the `fb_error` [h, w] they were weighted with."""
         rows, cols = self.grid(full)
         f = self.flow(i, j)[np.ix_(rows, cols)]
         u = cols[None, :] + 0.5 + f[..., 0]
@@ -370,7 +375,7 @@ class FlowProvider(PointmapProvider):
         inside = (u >= 0) & (u < self.cameras[j].width) & (v >= 0) & (v < self.cameras[j].height)
         conf = np.exp(-fb / 2.0) * np.minimum(1.0, angle / MIN_ANGLE_DEG)
         ok = inside & (lam_i > 0) & (lam_j > 0) & (np.abs(det) > 1e-12) & np.isfinite(points).all(-1)
-        return points, np.where(ok, conf, 0.0)
+        return points, np.where(ok, conf, 0.0), fb
 
     def depth(self, n: int, full: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Triangulated with the `partners`: per pixel the more confident of the two, or with
@@ -413,13 +418,13 @@ class FlowProvider(PointmapProvider):
         ci = -self.viewmats[n][:3, :3].T @ self.viewmats[n][:3, 3]
         inverse, flow_terms, baselines = [], [], []
         for m in self.partners(n):
-            points, conf = self.triangulate(n, m, full)
+            points, conf, fb = self._triangulate_with_fb(n, m, full)
             z = to_camera(points, self.viewmats[n])[..., 2]
             baseline = float(np.linalg.norm(ci + self.viewmats[m][:3, :3].T @ self.viewmats[m][:3, 3]))
             usable = (conf > 0) & (z > 0) & np.isfinite(z)
             inverse.append(np.where(usable, 1.0 / np.where(usable, z, 1.0), np.nan))
             # triangulate's confidence without its angle factor
-            flow_terms.append(np.where(usable, np.exp(-self.fb_error(n, m, full) / 2.0), 0.0))
+            flow_terms.append(np.where(usable, np.exp(-fb / 2.0), 0.0))
             baselines.append(np.where(usable, baseline, 0.0))
         u, b = np.stack(inverse), np.stack(baselines)  # [K, h, w]
         with warnings.catch_warnings():
