@@ -241,10 +241,10 @@ def test_a_chunked_run_resumes_from_its_checkpoint_and_ends_as_an_uninterrupted_
     from plyfile import PlyData
 
     capture = _tiny_capture(tiny_scene, tmp_path)
-    schedule = {"coarse_iterations": 20, "iterations": 120, "seed": 0}
+    schedule = {"coarse_iterations": 10, "iterations": 50, "seed": 0}
     extra = ["--configs", str(real_suite.ROOT / "arguments" / "synthetic" / "default.py"), "--log_every", "1",
-             "--densify_from_iter", "5", "--densification_interval", "10", "--densify_until_iter", "100",
-             "--pruning_from_iter", "5", "--pruning_interval", "10", "--position_lr_max_steps", "120"]
+             "--densify_from_iter", "5", "--densification_interval", "10", "--densify_until_iter", "40",
+             "--pruning_from_iter", "5", "--pruning_interval", "10", "--position_lr_max_steps", "50"]
     args = (capture, "baseline", tmp_path / "data")
     whole = real_suite.run_one(*args, tmp_path / "whole", schedule, extra, 1)
     with pytest.raises(real_suite.ChunkPending, match="call again"):
@@ -254,15 +254,19 @@ def test_a_chunked_run_resumes_from_its_checkpoint_and_ends_as_an_uninterrupted_
     assert real_suite.run_one(*args, tmp_path / "chunked", schedule, extra, 1, chunk_seconds=1e6) == run
     chunks = json.loads((run / real_suite.CHUNKS_FILE).read_text())["chunks"]
     assert [c["returncode"] for c in chunks] == [real_suite.INTERRUPTED_RC, 0] and chunks[1]["from"]
+    logged = [json.loads(line) for line in (run / "train_log.jsonl").read_text().splitlines()]
+    resumed = next(k for k, e in enumerate(logged) if e["kind"] == "resumed")
+    counts = {e["num_gaussians"] for e in logged[resumed:] if e["kind"] == "iter"}
+    assert len(counts) > 1, counts  # densification and pruning changed the count after the cut
     assert json.loads((run / real_suite.DONE_FILE).read_text())["command"] == \
         json.loads((whole / real_suite.DONE_FILE).read_text())["command"][:4] + \
         [str(run)] + json.loads((whole / real_suite.DONE_FILE).read_text())["command"][5:]
-    ply = "point_cloud/iteration_120/point_cloud.ply"
+    ply = "point_cloud/iteration_50/point_cloud.ply"
     a, b = PlyData.read(str(whole / ply))["vertex"], PlyData.read(str(run / ply))["vertex"]
     assert a.count == b.count
     for name in ("x", "y", "z", "opacity", "f_dc_0"):
         np.testing.assert_allclose(np.asarray(b[name]), np.asarray(a[name]), rtol=1e-4, atol=1e-5, err_msg=name)
-    psnr = [json.loads((r / "results.json").read_text())["ours_120"]["PSNR"] for r in (whole, run)]
+    psnr = [json.loads((r / "results.json").read_text())["ours_50"]["PSNR"] for r in (whole, run)]
     assert psnr[1] == pytest.approx(psnr[0], abs=1e-3)
     summary = real_suite.summarise(run, [], None)
     assert summary["train_s"] == pytest.approx(sum(c["seconds"] for c in chunks))
