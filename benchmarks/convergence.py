@@ -41,7 +41,7 @@ every capture at half the benchmark's image size: about 160 pixels across (Ballo
 basketball 160x90, the prepared DAVIS clips 160x90), the study's CPU size.
 
 Writes `OUT/convergence.json` (schedule, flags and figures per run), `OUT/convergence.md` (one
-table: PSNR all / inside the true masks / outside, SSIM, Gaussians at the end, wall seconds) and a
+table: PSNR all / inside the true masks / outside, SSIM, Gaussians at the end, wall seconds, CPU seconds of the training steps) and a
 PNG (`--plot`, default `OUT/convergence.png`): PSNR (solid, left axis) and Gaussians (dashed, right axis, log) against fine
 iterations, one panel per capture, both methods.
 """
@@ -77,7 +77,7 @@ FULL_SCHEDULE = {
 MIN_SCALED = {"densification_interval": 10, "pruning_interval": 10}  # others: at least 1
 DEFAULT_BUDGETS = (1000, 3000, 7000, 14_000)
 DEFAULT_CAPTURES = ("nvidia_balloon1", "panoptic_basketball")
-COLUMNS = ("PSNR", "PSNR-mask", "PSNR-outside", "SSIM", "Gaussians", "train_s", "MLP")
+COLUMNS = ("PSNR", "PSNR-mask", "PSNR-outside", "SSIM", "Gaussians", "train_s", "train_cpu_s", "MLP")
 
 
 def scaled_schedule(budget: int) -> dict[str, int]:
@@ -124,7 +124,7 @@ def final_gaussians(run: Path) -> int | None:
 
 def table(rows: list[dict]) -> str:
     """Markdown: one line per (capture, method, budget), in that order."""
-    fmt = {"SSIM": "{:.3f}", "Gaussians": "{:,}", "train_s": "{:.0f}", "MLP": "{}"}
+    fmt = {"SSIM": "{:.3f}", "Gaussians": "{:,}", "train_s": "{:.0f}", "train_cpu_s": "{:.0f}", "MLP": "{}"}
     lines = ["| capture | method | fine its | " + " | ".join(COLUMNS) + " |", "|---|---|---:|" + "---:|" * len(COLUMNS)]
     for row in sorted(rows, key=lambda r: (r["capture"], r["method"], r["budget"])):
         if "failed" in row:
@@ -280,7 +280,7 @@ def main(argv: list[str] | None = None) -> int:
             figures = real_suite.summarise(result, masks, scene)
             row.update({k: figures.get(k) for k in ("PSNR", "SSIM", "PSNR-mask", "PSNR-outside", "mask %", "code", "MLP")})
             row["Gaussians"] = final_gaussians(result)
-            row["train_s"] = figures.get("train_s")
+            row["train_s"], row["train_cpu_s"] = figures.get("train_s"), figures.get("train_cpu_s")
             row["command"] = json.loads((result / real_suite.DONE_FILE).read_text())["command"]
             rows.append(row)
         if args.images is not None:

@@ -26,7 +26,9 @@ SIGTERM (train.py checkpoints the iteration it is at and exits 143), the command
 next call continues that run from its latest `chkpnt_*.pth` (`--start_checkpoint`, same command,
 same code version: `real_chunks.json` records them with each call's seconds, whose sum is the
 run's train_s). A run is never cut before its training loop starts or after it ends (final
-evaluation and renders).
+evaluation and renders). train_cpu_s is the CPU seconds of the training steps over the whole run
+(each checkpoint carries the training clock, so it counts every chunk; empty for a run resumed
+from a checkpoint older than that): the time to compare between runs trained beside different loads.
 
 In-mask metrics: the dataset's masks when every held-out view has one (evaluation-only ground
 truth first: NVIDIA and prepared clips' `gt/motion_masks/`, e.g. the DAVIS annotations, panoptic
@@ -78,7 +80,7 @@ DEFAULT_METHODS = ("baseline", "reflow")
 DONE_FILE = "real_done.json"
 CHUNKS_FILE = "real_chunks.json"  # a chunked run: its command, code and each call's seconds
 INTERRUPTED_RC = 143  # train.py after SIGTERM: checkpointed and stopped (baselines/cli_exit.py)
-COLUMNS = ("PSNR", "SSIM", "PSNR-mask", "PSNR-outside", "mask %", "train_s", "code", "MLP")
+COLUMNS = ("PSNR", "SSIM", "PSNR-mask", "PSNR-outside", "mask %", "train_s", "train_cpu_s", "code", "MLP")
 NEAR_PLANE = 0.01  # the rasterizer's default near plane (baselines/render/api.py)
 
 
@@ -352,6 +354,17 @@ def mlp_arithmetic_of(run: Path) -> str | None:
     return (record.get("machine") or {}).get("mlp_arithmetic")
 
 
+def train_cpu_seconds(log: list[dict]) -> float | None:
+    """CPU seconds of the training steps over the whole run (evaluation, saving and start-up
+    excluded; less sensitive than wall seconds to what else the machine runs), from its
+    train_log.jsonl records; None when a chunk resumed from a checkpoint without the training
+    clock (written before it was saved) or the run has not ended."""
+    ends = [r for r in log if r.get("kind") == "train_end"]
+    if not ends or any(r.get("kind") == "resumed" and not r.get("clock_restored") for r in log):
+        return None
+    return ends[-1].get("train_cpu_seconds")
+
+
 def summarise(run: Path, masks: list[np.ndarray], scene) -> dict:
     """The figures of one finished run."""
     results = json.loads((run / "results.json").read_text())
@@ -363,7 +376,7 @@ def summarise(run: Path, masks: list[np.ndarray], scene) -> dict:
         end = [{"wall_seconds": sum(c["seconds"] for c in json.loads(chunks.read_text())["chunks"])}]
     row = {"PSNR": results[key]["PSNR"], "SSIM": results[key]["SSIM"], **masked_metrics(run, masks),
            "mask %": 100.0 * float(np.mean([m.mean() for m in masks])) if masks else None,
-           "train_s": end[-1].get("wall_seconds") if end else None,
+           "train_s": end[-1].get("wall_seconds") if end else None, "train_cpu_s": train_cpu_seconds(log),
            "code": json.loads((run / DONE_FILE).read_text()).get("code"), "MLP": mlp_arithmetic_of(run)}
     if "reflow" in results:
         row["reflow"] = results["reflow"]
@@ -388,7 +401,7 @@ def side_by_side(capture: Capture, runs: dict[str, Path], masks: list[np.ndarray
 
 def table(rows: dict[str, dict[str, dict]]) -> str:
     """Markdown: one line per (capture, method)."""
-    fmt = {"SSIM": "{:.3f}", "train_s": "{:.0f}", "mask %": "{:.1f}", "code": "{}", "MLP": "{}"}
+    fmt = {"SSIM": "{:.3f}", "train_s": "{:.0f}", "train_cpu_s": "{:.0f}", "mask %": "{:.1f}", "code": "{}", "MLP": "{}"}
     lines = ["| capture | method | " + " | ".join(COLUMNS) + " |", "|---|---|" + "---:|" * (len(COLUMNS) - 1) + "---|"]
     for name, methods in rows.items():
         for method, values in methods.items():

@@ -102,7 +102,8 @@ def _fake_rows() -> list[dict]:
             for budget in (4000, 500, 1500):
                 rows.append({"capture": capture, "method": method, "budget": budget, "PSNR": 20 + offset + budget / 1000,
                              "PSNR-mask": 15.0 + offset, "PSNR-outside": 22.0, "SSIM": 0.6, "Gaussians": 1000 * budget,
-                             "train_s": budget / 10, "MLP": "float32" if capture == "cap_a" else None})
+                             "train_s": budget / 10, "train_cpu_s": budget / 20 if capture == "cap_a" else None,
+                             "MLP": "float32" if capture == "cap_a" else None})
     rows[-1] = {"capture": "cap_a", "method": "baseline", "budget": 1500, "failed": "train.py exited 2: a | b"}
     return rows
 
@@ -114,8 +115,8 @@ def test_table_orders_capture_method_budget_and_shows_a_failed_run():
                                              ["cap_a", "baseline", "4000"]]
     assert body[1][3] == "FAILED: train.py exited 2: a / b"
     assert all(line.count("|") == lines[0].count("|") for line in lines)
-    assert body[0][3:] == ["20.50", "15.00", "22.00", "0.600", "500,000", "50", "float32"]
-    assert body[-1][-1] == "-"  # a run older than run.json's machine record
+    assert body[0][3:] == ["20.50", "15.00", "22.00", "0.600", "500,000", "50", "25", "float32"]
+    assert body[-1][-2:] == ["-", "-"]  # a run older than the training clock and run.json's machine record
     assert len(body) == 12
 
 

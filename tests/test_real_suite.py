@@ -258,6 +258,14 @@ def test_a_chunked_run_resumes_from_its_checkpoint_and_ends_as_an_uninterrupted_
     resumed = next(k for k, e in enumerate(logged) if e["kind"] == "resumed")
     counts = {e["num_gaussians"] for e in logged[resumed:] if e["kind"] == "iter"}
     assert len(counts) > 1, counts  # densification and pruning changed the count after the cut
+    # the training clock continues from the checkpoint: the run's CPU total counts both chunks
+    cut = next(e for e in logged if e["kind"] == "interrupted")
+    end = next(e for e in logged if e["kind"] == "train_end")
+    assert logged[resumed]["clock_restored"] and logged[resumed]["train_cpu_seconds"] == cut["train_cpu_seconds"] > 0
+    assert end["train_cpu_seconds"] > cut["train_cpu_seconds"]
+    assert real_suite.train_cpu_seconds(logged) == end["train_cpu_seconds"]
+    old_checkpoint = [{**e, "clock_restored": False} if e["kind"] == "resumed" else e for e in logged]
+    assert real_suite.train_cpu_seconds(old_checkpoint) is None  # a chunk that restarted the clock: no total
     assert json.loads((run / real_suite.DONE_FILE).read_text())["command"] == \
         json.loads((whole / real_suite.DONE_FILE).read_text())["command"][:4] + \
         [str(run)] + json.loads((whole / real_suite.DONE_FILE).read_text())["command"][5:]
@@ -270,6 +278,7 @@ def test_a_chunked_run_resumes_from_its_checkpoint_and_ends_as_an_uninterrupted_
     assert psnr[1] == pytest.approx(psnr[0], abs=1e-3)
     summary = real_suite.summarise(run, [], None)
     assert summary["train_s"] == pytest.approx(sum(c["seconds"] for c in chunks))
+    assert summary["train_cpu_s"] == end["train_cpu_seconds"]
     # the MLP arithmetic the run trained with (run.json's machine record) is in its table row
     assert summary["MLP"] == read_run_record(run)["machine"]["mlp_arithmetic"] in ("float32", "bfloat16")
     assert f"| {summary['MLP']} |" in real_suite.table({"toy": {"baseline": summary}})

@@ -128,7 +128,7 @@ class Trainer:
         self.run_log = RunLog(model_path / "train_log.jsonl", quiet=self.run.quiet)
         self._densify_grads: list[Tensor | None] | None = None
         self.timer = StageTimer()
-        self.train_seconds = 0.0  # wall / CPU seconds spent in training steps (this process)
+        self.train_seconds = 0.0  # wall / CPU seconds spent in training steps (a resume continues its checkpoint's)
         self.train_cpu_seconds = 0.0
         self.run_folder: RunFolder | None = None  # set by the app: run.json records saves and the end
         self._stop: StopFlag | None = None
@@ -473,7 +473,8 @@ class Trainer:
         path = ctx.model_path / f"chkpnt_{ctx.stage}_{ctx.iteration}.pth"
         if not path.is_file():
             path = self.save_checkpoint()
-        self.run_log.event("interrupted", stage=ctx.stage, iteration=ctx.iteration, checkpoint=str(path))
+        self.run_log.event("interrupted", stage=ctx.stage, iteration=ctx.iteration, checkpoint=str(path),
+                           train_seconds=self.train_seconds, train_cpu_seconds=self.train_cpu_seconds)
         raise TrainingInterrupted(ctx.stage, ctx.iteration, path, self._stop.signum if self._stop else 2)
 
     def save_point_cloud(self) -> Path:
@@ -506,6 +507,8 @@ class Trainer:
             "plugins": self.hooks.state_dict(),
             "run": {"plugins": list(self.identity().plugins),
                     "components": {k: list(v) for k, v in self.identity().components.items()}},
+            # the training clock up to this iteration: a resumed run's figures count every chunk
+            "clock": {"train_seconds": self.train_seconds, "train_cpu_seconds": self.train_cpu_seconds},
         }
 
     def load_model_from(self, folder: Path) -> None:
@@ -570,7 +573,13 @@ class Trainer:
                 self.sampler.items = [self.train_cameras[i] for i in resume["camera_order"]]
             self.sampler.load_state_dict(extra["sampler"])
         self.hooks.load_state_dict(extra.get("plugins") or {})
-        self.run_log.event("resumed", path=str(resume["path"]), stage=state.stage, iteration=state.iteration)
+        clock = extra.get("clock")
+        if isinstance(clock, dict):  # checkpoints written before the clock was saved start it at 0
+            self.train_seconds = float(clock["train_seconds"])
+            self.train_cpu_seconds = float(clock["train_cpu_seconds"])
+        self.run_log.event("resumed", path=str(resume["path"]), stage=state.stage, iteration=state.iteration,
+                           clock_restored=isinstance(clock, dict), train_seconds=self.train_seconds,
+                           train_cpu_seconds=self.train_cpu_seconds)
         return int(state.iteration)
 
 
