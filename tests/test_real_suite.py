@@ -258,11 +258,11 @@ def test_a_chunked_run_resumes_from_its_checkpoint_and_ends_as_an_uninterrupted_
     resumed = next(k for k, e in enumerate(logged) if e["kind"] == "resumed")
     counts = {e["num_gaussians"] for e in logged[resumed:] if e["kind"] == "iter"}
     assert len(counts) > 1, counts  # densification and pruning changed the count after the cut
-    # the training clock continues from the checkpoint: the run's CPU total counts both chunks
+    # bookkeeping, not speed: the resumed chunk starts its clock at the checkpoint's
     cut = next(e for e in logged if e["kind"] == "interrupted")
     end = next(e for e in logged if e["kind"] == "train_end")
-    assert logged[resumed]["clock_restored"] and logged[resumed]["train_cpu_seconds"] == cut["train_cpu_seconds"] > 0
-    assert end["train_cpu_seconds"] > cut["train_cpu_seconds"]
+    assert logged[resumed]["clock_restored"]
+    assert logged[resumed]["train_cpu_seconds"] == cut["train_cpu_seconds"]
     assert real_suite.train_cpu_seconds(logged) == end["train_cpu_seconds"]
     old_checkpoint = [{**e, "clock_restored": False} if e["kind"] == "resumed" else e for e in logged]
     assert real_suite.train_cpu_seconds(old_checkpoint) is None  # a chunk that restarted the clock: no total
