@@ -95,7 +95,7 @@ def parse_train_args(argv: list[str] | None = None,
                            "shown are 4DGS's; without --configs the dataset family's config file is "
                            "applied over them (named in the first log lines; e.g. the embedded scene "
                            "trains 300 + 2000 iterations), and typed flags override both. --configs none "
-                           "keeps the defaults shown.")
+                           "keeps the defaults shown (the background excepted: see --white_background).")
     cli_layer = _parse_cli(parser, schema, argv)
     configs = cli_layer.get("RunParams", "configs", [])
     base = load_configs(configs, schema)
@@ -129,7 +129,9 @@ def parse_render_args(argv: list[str] | None = None,
     run_classes = {**HOST_GROUPS, **extra, "RunParams": RunParams}
     cli_schema = build_schema(cli_classes)
     run_schema = build_schema(run_classes)
-    parser = _build_parser(cli_schema, cli_classes, "Render a trained model's views.")
+    parser = _build_parser(cli_schema, cli_classes, "Render a trained model's views. The defaults shown are "
+                           "4DGS's; the model directory's saved configuration replaces them, then --configs "
+                           "files, then the flags typed here.")
     cli_layer = _parse_cli(parser, cli_schema, argv)
     model_path = cli_layer.get("ModelParams", "model_path")
     if not model_path:

@@ -57,7 +57,7 @@ def _check_multires(value: list[int]) -> str | None:
     return None
 
 
-def _check_non_negative(value: int) -> str | None:
+def _check_non_negative(value: float) -> str | None:
     return None if value >= 0 else f"must be >= 0, got {value}"
 
 
@@ -90,8 +90,10 @@ class ModelParams:
     resolution: int = param(-1, "image size: -1 auto (width capped at 1600 px), 1/2/4/8 = "
                                 "downscale factor, other values = target width in pixels",
                             short="r")
-    white_background: bool = param(True, "background colour white (else black) for renders "
-                                         "and RGBA ground truth", short="w")
+    white_background: bool = param(True, "background colour white (else black) for renders and RGBA ground "
+                                         "truth; unless a flag or config file sets it, the dataset family's "
+                                         "(white: the simulator's scenes and D-NeRF; black: real captures), "
+                                         "even with --configs none", short="w")
     data_device: str = param("cuda", "4DGS: device holding the images; use --device here",
                              compat=True)
     eval: bool = param(True, "hold out test views (the dataset's split, or every llffhold-th "
@@ -215,24 +217,29 @@ class OptimizationParams:
     coarse_iterations: int = param(3000, "iterations of the coarse (static) stage",
                                    check=_check_non_negative)
     position_lr_init: float = param(0.00016, "initial learning rate of positions "
-                                             "(times the scene extent)")
-    position_lr_final: float = param(0.0000016, "final learning rate of positions")
+                                             "(times the scene extent)", check=_check_non_negative)
+    position_lr_final: float = param(0.0000016, "final learning rate of positions",
+                                     check=_check_non_negative)
     position_lr_delay_mult: float = param(0.01, "4DGS: warm-up multiplier of the position learning "
                                                 "rate; 4DGS sets no warm-up steps, so it has no effect "
                                                 "there or here", compat=True)
     position_lr_max_steps: int = param(20_000, "steps of the position (and deformation) "
                                                "learning-rate decay", check=_check_positive)
-    deformation_lr_init: float = param(0.00016, "initial learning rate of the deformation MLP")
-    deformation_lr_final: float = param(0.000016, "final learning rate of the deformation MLP")
+    deformation_lr_init: float = param(0.00016, "initial learning rate of the deformation MLP",
+                                       check=_check_non_negative)
+    deformation_lr_final: float = param(0.000016, "final learning rate of the deformation MLP",
+                                        check=_check_non_negative)
     deformation_lr_delay_mult: float = param(0.01, "4DGS: warm-up multiplier of the deformation "
                                                    "learning rate; no effect (see position_lr_delay_mult)",
                                              compat=True)
-    grid_lr_init: float = param(0.0016, "initial learning rate of the HexPlane grid")
-    grid_lr_final: float = param(0.00016, "final learning rate of the HexPlane grid")
-    feature_lr: float = param(0.0025, "learning rate of SH colours (rest: / 20)")
-    opacity_lr: float = param(0.05, "learning rate of opacities")
-    scaling_lr: float = param(0.005, "learning rate of scales")
-    rotation_lr: float = param(0.001, "learning rate of rotations")
+    grid_lr_init: float = param(0.0016, "initial learning rate of the HexPlane grid",
+                                check=_check_non_negative)
+    grid_lr_final: float = param(0.00016, "final learning rate of the HexPlane grid",
+                                 check=_check_non_negative)
+    feature_lr: float = param(0.0025, "learning rate of SH colours (rest: / 20)", check=_check_non_negative)
+    opacity_lr: float = param(0.05, "learning rate of opacities", check=_check_non_negative)
+    scaling_lr: float = param(0.005, "learning rate of scales", check=_check_non_negative)
+    rotation_lr: float = param(0.001, "learning rate of rotations", check=_check_non_negative)
     percent_dense: float = param(0.01, "clone/split boundary, as a fraction of the scene extent")
     lambda_dssim: float = param(0.0, "weight of the (1 - SSIM) term of the photometric loss")
     lambda_lpips: float = param(0.0, "4DGS: LPIPS loss weight (its code is commented out, " +

@@ -93,17 +93,29 @@ def schedule_flags(budget: int) -> list[str]:
     return [item for name, value in scaled_schedule(budget).items() for item in (f"--{name}", str(value))]
 
 
+DOWNSCALE_FACTORS = (1, 2, 4, 8)  # train.py -r values that divide the image size (baselines/data/resolution.py)
+
+
 def with_resolutions(captures: list[Capture], downscale: int, named: str | None) -> list[Capture]:
     """The captures with train.py's -r set: the registry's times `downscale`, or what `named`
     (`--resolution NAME=R,...`) gives for a capture.
 
     Raises:
-        CaptureError: a factor below 1, or a malformed `named`.
+        CaptureError: a factor below 1, a product that is not one of train.py's downscale factors
+            (1, 2, 4, 8: any other -r is a width in pixels, so -r 4 x 3 = 12 would train 12 px wide
+            images) for a capture `named` does not set, or a malformed `named`.
     """
     if downscale < 1:
         raise CaptureError(f"--downscale {downscale}: want a factor >= 1")
     scaled = [dataclasses.replace(c, resolution=c.resolution * downscale) for c in captures]
     resolutions = real_suite.parse_resolutions(named, scaled)
+    set_by_name = {item.partition("=")[0] for item in (named or "").split(",") if item}
+    for capture in captures:
+        product = capture.resolution * downscale
+        if downscale > 1 and capture.name not in set_by_name and product not in DOWNSCALE_FACTORS:
+            raise CaptureError(f"--downscale {downscale}: {capture.name}'s -r {capture.resolution} x {downscale} = "
+                               f"{product} is no downscale factor of train.py (1, 2, 4, 8; other values are a "
+                               f"width in pixels); choose another K or set it with --resolution {capture.name}=R")
     return [dataclasses.replace(c, resolution=resolutions[c.name]) for c in scaled]
 
 
@@ -187,7 +199,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--budgets", default=",".join(map(str, DEFAULT_BUDGETS)), help="comma list of fine iterations")
     parser.add_argument("--coarse_iterations", type=int, default=3000, help="the same for every budget")
     parser.add_argument("--downscale", type=int, default=1, metavar="K",
-                        help="train.py -r = the registry's resolution times K (default 1)")
+                        help="train.py -r = the registry's resolution times K (default 1; the product must be "
+                             "a downscale factor: 1, 2, 4 or 8)")
     parser.add_argument("--resolution", help="NAME=R,... train.py -r per capture (wins over --downscale)")
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--out", type=Path, default=ROOT / "output" / "convergence")
@@ -210,6 +223,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.jobs < 1:
             raise CaptureError(f"--jobs {args.jobs}: want 1 or more trainings at once")
+        real_suite.check_chunk_seconds(args.chunk_seconds)
         captures = select(args.captures)
         methods = [m for m in args.methods.split(",") if m]
         unknown = [m for m in methods if m not in real_suite.METHODS]

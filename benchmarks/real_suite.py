@@ -498,6 +498,13 @@ def parse_resolutions(text: str | None, captures: list[Capture]) -> dict[str, in
     return chosen
 
 
+def check_chunk_seconds(seconds: float | None) -> None:
+    """`--chunk-seconds` must leave time to train: 0 or less would end every call at once with exit 3
+    ("call again"), so a calling loop would never finish. CaptureError otherwise."""
+    if seconds is not None and not seconds > 0:
+        raise CaptureError(f"--chunk-seconds {seconds:g}: want a positive number of seconds")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--captures", help="comma list of registry names (default: all)")
@@ -525,6 +532,9 @@ def main(argv: list[str] | None = None) -> int:
     argv, extra = split_passthrough(argv)
     args = build_parser().parse_args(argv)
     try:
+        if args.jobs < 1:
+            raise CaptureError(f"--jobs {args.jobs}: want 1 or more trainings at once")
+        check_chunk_seconds(args.chunk_seconds)
         if args.setup:
             if args.clone is None:
                 raise CaptureError("--setup needs --clone DIR (see --fetch-instructions)")

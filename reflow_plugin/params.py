@@ -282,7 +282,8 @@ class ReFlowParams:
                                          "depth (0 = no downsampling)", check=_non_negative)
     canonical_max_points: int = param(20_000, "at most this many fused static points: the voxel grows in x1.25 "
                                               "steps until the cloud fits (noisy monocular depth thickens "
-                                              "surfaces; 0 = no limit)", check=_non_negative)
+                                              "surfaces; 0 = no limit; not applied with --canonical_voxel 0, "
+                                              "which keeps every point)", check=_non_negative)
     canonical_consistency: float = param(0.05, "ours: multi-view test of the fused static points: a point that "
                                                "more training frames see through (their aligned depth farther "
                                                "than it by this relative tolerance) than agree with it is "

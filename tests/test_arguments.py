@@ -282,3 +282,18 @@ def test_render_errors(tmp_path, capsys):
     (tmp_path / "cfg_args").write_text("__import__('os')")
     with pytest.raises(ConfigError, match="unreadable cfg_args"):
         parse_render_args(["-m", str(tmp_path)])
+
+
+def test_help_names_the_family_background_and_render_s_saved_configuration(capsys):
+    """--white_background's shown default (4DGS's True) is replaced by the dataset family's whenever no
+    flag or config file sets it, --configs none included; render.py's values come from the model
+    directory. The help said neither."""
+    with pytest.raises(SystemExit):
+        parse_train_args(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "unless a flag or config file sets it, the dataset family's" in text
+    assert "--configs none keeps the defaults shown (the background excepted" in text
+    with pytest.raises(SystemExit):
+        parse_render_args(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "the model directory's saved configuration replaces them" in text

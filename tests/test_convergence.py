@@ -153,3 +153,27 @@ def test_downscale_multiplies_the_registry_resolution_and_a_named_one_wins():
     assert [c.resolution for c in convergence.with_resolutions(captures, 1, None)] == [c.resolution for c in captures]
     with pytest.raises(CaptureError):
         convergence.with_resolutions(captures, 0, None)
+
+
+def test_downscale_refuses_a_product_that_train_py_reads_as_a_width():
+    """train.py -r 1, 2, 4, 8 divides the image size; any other value is a width in pixels. Before,
+    --downscale 3 gave Balloon1 (-r 4) -r 12: 12 px wide images, trained without a word."""
+    balloon, dog = CAPTURES["nvidia_balloon1"], CAPTURES["davis_dog"]
+    with pytest.raises(CaptureError, match=r"nvidia_balloon1's -r 4 x 3 = 12 is no downscale factor"):
+        convergence.with_resolutions([balloon], 3, None)
+    with pytest.raises(CaptureError, match="davis_dog's -r 1 x 3 = 3"):
+        convergence.with_resolutions([dog], 3, None)
+    assert [c.resolution for c in convergence.with_resolutions([balloon, dog], 2, None)] == [8, 2]
+    # a capture set by name is the user's explicit -r: not checked against the factor rule
+    assert [c.resolution for c in convergence.with_resolutions([balloon, dog], 4, "nvidia_balloon1=160")] == [160, 4]
+
+
+@pytest.mark.parametrize("main", [convergence.main, real_suite.main])
+@pytest.mark.parametrize("argv", [["--chunk-seconds", "0"], ["--chunk-seconds", "-5"], ["--jobs", "0"]])
+def test_chunk_seconds_and_jobs_that_cannot_train_are_one_line_errors(tmp_path, capsys, main, argv):
+    """--chunk-seconds 0 made every call exit 3 ('call again') at once, forever; real_suite.py took
+    --jobs 0 (convergence.py refused it)."""
+    assert main([*argv, "--data", str(tmp_path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1 and argv[0] in err, err
+    assert not (tmp_path / "out").exists()

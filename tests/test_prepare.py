@@ -410,3 +410,17 @@ def test_masks_keep_a_large_mover_out_of_sfm(tmp_path):
     unmasked = results["none"]
     assert (unmasked is None or unmasked[0] < 16
             or unmasked[1]["position_error_rel_max"] > 4 * max(errors["position_error_rel_max"], POSITION_TOL))
+
+
+@pytest.mark.parametrize("overlap", [0, -3])
+def test_an_overlap_below_one_is_refused_before_any_frame_is_read(tmp_path, overlap):
+    """--overlap 0 matches no pair of frames: before, it passed the checks and SfM failed only after
+    every frame's features were extracted."""
+    from baselines.prepare.errors import PrepareError
+    from baselines.prepare.pipeline import PrepareOptions
+    from baselines.prepare.sfm import SfmOptions
+
+    options = PrepareOptions(source=tmp_path / "clip.mp4", output=tmp_path / "out", sfm=SfmOptions(overlap=overlap))
+    with pytest.raises(PrepareError, match=f"--overlap {overlap}: must be at least 1"):
+        options.validate()
+    PrepareOptions(source=tmp_path / "clip.mp4", output=tmp_path / "out", sfm=SfmOptions(overlap=1)).validate()

@@ -296,3 +296,12 @@ def test_plugin_uses_the_canonical_space(scene_path, tmp_path):
     assert plugin.keyframe_times == [plugin.depth_cameras[plugin.reference].time] and plugin._uses_curriculum
     assert results["canonical"]["alignment"]["mode"] == "none (w/o align)"  # exact disparity: the check passes
     assert results["canonical_check"]["passed"] and not results["canonical_check"]["failures"]
+
+
+def test_canonical_max_points_help_says_the_voxel_0_cloud_is_not_limited():
+    """static_cloud grows the voxel to meet --canonical_max_points; with --canonical_voxel 0 there is
+    no voxel to grow and every point is kept. The help claimed a limit in every case."""
+    import dataclasses
+
+    help_text = {f.name: f.metadata["help"] for f in dataclasses.fields(ReFlowParams)}["canonical_max_points"]
+    assert "not applied with --canonical_voxel 0" in help_text

@@ -394,3 +394,37 @@ def test_a_flat_disparity_map_gives_no_fit():
     assert fit_disparity(np.full(300, 0.7) + 1e-9 * np.arange(300), depth) is None  # flat to rounding
     ramp = (1.0 / depth - 0.001) / 0.004  # the same depths with a real disparity
     assert fit_disparity(ramp, depth).scale == pytest.approx(0.004, rel=1e-6)
+
+
+# ------------------------------------------------------------------ 8. schedule flags refused before any loading
+@pytest.mark.parametrize("flags, named", [
+    (("--iterations", "0"), "--iterations 0"),
+    (("--position_lr_final", "0"), "--position_lr_init 0.00016 with --position_lr_final 0"),
+    (("--grid_lr_init", "0"), "--grid_lr_init 0 with --grid_lr_final 0.00016"),
+    (("--deformation_lr_final", "0"), "--deformation_lr_final 0"),
+])
+def test_schedule_flags_that_cannot_train_are_one_line_before_the_dataset_is_read(tmp_path, capsys, flags, named):
+    """Before: --iterations 0 was refused once the dataset was loaded, a rate pair of 0 and > 0 only
+    once the initial cloud was built (ReFlow: after its canonical space), without the flag's name.
+    The dataset named here does not exist: the flag must be what the line names."""
+    from baselines.fourdgs.app import run_cli, train_from_argv
+    from tests.test_trainer import base_argv
+
+    argv = base_argv(tmp_path / "no_such_dataset", tmp_path / "run", 1, 1, *flags)
+    with pytest.raises(SystemExit) as stop:
+        run_cli(lambda: train_from_argv(argv) and 0)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and named in err[0] and "no_such_dataset" not in err[0], err
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("flag", ["--position_lr_init", "--grid_lr_final", "--feature_lr", "--opacity_lr",
+                                  "--scaling_lr", "--rotation_lr"])
+def test_a_negative_learning_rate_is_a_flag_error(flag, capsys):
+    from arguments import parse_train_args
+
+    with pytest.raises(SystemExit) as stop:
+        parse_train_args([flag, "-0.001"])
+    assert stop.value.code == 2
+    assert f"argument {flag}: must be >= 0, got -0.001" in capsys.readouterr().err

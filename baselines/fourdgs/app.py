@@ -117,11 +117,35 @@ def resolve_train_args(argv: list[str]) -> ResolvedArgs:
     return ResolvedArgs(args, embedded, source, plugin_classes, components, decision, model_from_old_run)
 
 
-def build_trainer(argv: list[str]) -> Trainer:
-    """Parse, validate and load everything a run needs; return a Trainer ready to train."""
+# (initial, final) learning-rate flags of one log-linear schedule (lr_schedule.get_expon_lr_func)
+LR_SCHEDULES = (("position_lr_init", "position_lr_final"), ("deformation_lr_init", "deformation_lr_final"),
+                ("grid_lr_init", "grid_lr_final"))
+
+
+def check_schedules(opt, *, require_training: bool) -> None:
+    """Schedule flags that cannot train, refused before any folder or data is touched (the
+    schedules themselves would refuse them only once the initial cloud is built, and without the
+    flag's name): a schedule's two rates both > 0 or both 0; with ``require_training`` (train.py),
+    ``--iterations`` >= 1."""
+    if require_training and opt.iterations == 0:
+        raise ValueError("--iterations 0: the run would save no model (the fine stage is what render.py, "
+                         "export and the viewer load); give --iterations >= 1")
+    for first, last in LR_SCHEDULES:
+        start, end = getattr(opt, first), getattr(opt, last)
+        if (start > 0) != (end > 0):
+            raise ValueError(f"--{first} {start:g} with --{last} {end:g}: a decaying rate needs both > 0 "
+                             "(or both 0 to freeze the group)")
+
+
+def build_trainer(argv: list[str], require_training: bool = False) -> Trainer:
+    """Parse, validate and load everything a run needs; return a Trainer ready to train.
+
+    ``require_training`` (train.py): ``--iterations 0`` is refused before anything is loaded (a
+    test may build an untrained model)."""
     typed = list(argv)
     resolved = resolve_train_args(argv)
     args = resolved.args
+    check_schedules(args.opt, require_training=require_training)
     seed_everything(args.opt.seed)
     # --device cuda without CUDA, --backend gsplat where it cannot run: one line before any folder or data
     resolve_backend(args.pipe.backend, resolve_device(args.pipe.device))
@@ -297,12 +321,7 @@ def finish_run(trainer: Trainer, result: TrainResult) -> RunSummary:
 def train_from_argv(argv: list[str]) -> RunSummary:
     """The whole of train.py: build, train, evaluate."""
     logging.basicConfig(level=logging.INFO, format="[%(name)s] %(message)s")
-    trainer = build_trainer(argv)
-    if trainer.opt.iterations == 0:  # (build_trainer alone may take 0: tests of an untrained model)
-        trainer.run_log.close()
-        trainer.run_folder.abandon()
-        raise ValueError("--iterations 0: the run would save no model (the fine stage is what render.py, "
-                         "export and the viewer load); give --iterations >= 1")
+    trainer = build_trainer(argv, require_training=True)
     if trainer.run.detect_anomaly:
         torch.autograd.set_detect_anomaly(True)
     folder = trainer.run_folder
