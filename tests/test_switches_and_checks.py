@@ -428,3 +428,20 @@ def test_a_negative_learning_rate_is_a_flag_error(flag, capsys):
         parse_train_args([flag, "-0.001"])
     assert stop.value.code == 2
     assert f"argument {flag}: must be >= 0, got -0.001" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("flags, named", [(("--train_cameras", "1,2"), "--train_cameras"),
+                                          (("--test_every", "5", "--test_cameras", "0"), "--test_cameras, --test_every")])
+def test_panoptic_only_flags_on_another_dataset_are_one_error_line(tiny_scene, tmp_path, capsys, flags, named):
+    """Before: the panoptic reader's split flags were dropped without a word on any other dataset, so
+    a user's held-out cameras silently became the dataset's own split."""
+    from baselines.fourdgs.app import run_cli, train_from_argv
+    from tests.test_trainer import base_argv
+
+    argv = base_argv(tiny_scene, tmp_path / "run", 1, 1, *flags)
+    with pytest.raises(SystemExit) as stop:
+        run_cli(lambda: train_from_argv(argv) and 0)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{named}: read by the panoptic reader only" in err[0], err
+    assert not (tmp_path / "run" / "point_cloud").exists()

@@ -236,9 +236,26 @@ def _fit_time_cells(args, scene) -> None:
     args.sources[key] = f"{args.sources.get(key, 'default')}, time cells fitted to {len(times)} frames"
 
 
+# ModelParams fields only the panoptic reader reads, with the flag that sets each
+PANOPTIC_ONLY = (("train_cameras", "--train_cameras"), ("test_cameras", "--test_cameras"), ("test_every", "--test_every"))
+
+
 def reader_options(source: Path | str, model) -> dict:
-    """The chosen reader's own options from ``ModelParams`` (panoptic: its camera cycle and test stride)."""
-    if dataset_family(Path(source), model.dataset_type) != "panoptic":
+    """The chosen reader's own options from ``ModelParams`` (panoptic: its camera cycle and test stride).
+
+    Raises:
+        ValueError: a panoptic-only option set away from its default for a dataset of another
+            family (it would be dropped without a word; the split it asks for would not happen).
+    """
+    from arguments.params import ModelParams
+
+    family = dataset_family(Path(source), model.dataset_type)
+    if family != "panoptic":
+        defaults = ModelParams()
+        changed = [flag for name, flag in PANOPTIC_ONLY if getattr(model, name) != getattr(defaults, name)]
+        if changed:
+            raise ValueError(f"{', '.join(changed)}: read by the panoptic reader only, and {source} is a {family} "
+                             "dataset; its split is set with --eval / --llffhold")
         return {}
     return {"train_cameras": model.train_cameras or None, "test_cameras": model.test_cameras or None,
             "test_every": model.test_every}
