@@ -410,7 +410,7 @@ def diagnose_run(run: Path, scene, source: Path, render_train: bool) -> dict:
         raise DiagnosisError(f"{real_suite.latest_test_dir(run)} lacks renders or gt of the {len(scene.test_cameras)} "
                              "held-out views: not a finished run of this dataset")
     if test_masks is not None:
-        row.update({f"held-out {k}": v for k, v in real_suite.masked_metrics(run, test_masks).items()})
+        row.update({f"held-out {k}": v for k, v in real_suite.masked_metrics(run, test_masks, [c.image_name for c in scene.test_cameras]).items()})
     figures = region_figures(held, test_masks)
     row["SE in mask share"] = figures["se_in_share"]
     if test_masks is None:

@@ -327,9 +327,37 @@ def region_psnr(render: np.ndarray, gt: np.ndarray, region: np.ndarray) -> float
     return math.inf if mse == 0 else 10.0 * math.log10(255.0 ** 2 / mse)
 
 
-def masked_metrics(run: Path, masks: list[np.ndarray]) -> dict[str, float | None]:
-    """Mean over held-out views of PSNR inside / outside the masks, from the saved renders."""
+def check_rendered_views(test_dir: Path, count: int, names: list[str] | None) -> None:
+    """The numbered PNGs of `test_dir` are the `count` held-out views named `names` (test order).
+
+    Masks pair with renders by position, so a render folder of another split (a capture prepared
+    again, a changed hold-out) would be scored against the wrong masks without a word. Runs older
+    than `views.json` are checked by count only. SuiteError otherwise."""
+    from baselines.fourdgs.evaluate import VIEWS_FILE
+
+    rendered = len(list((test_dir / "renders").glob("*.png")))
+    if rendered != count:
+        raise SuiteError(f"{test_dir}: {rendered} rendered views for {count} held-out views (masks)")
+    views_file = test_dir / VIEWS_FILE
+    if names is None or not views_file.is_file():
+        return
+    recorded = json.loads(views_file.read_text())
+    for index, name in enumerate(names):
+        png = f"{index:05d}.png"
+        if recorded.get(png) != name:
+            raise SuiteError(f"{views_file}: {png} renders {recorded.get(png)!r}, the held-out view with this "
+                             f"mask is {name!r}: the run was evaluated on another split")
+
+
+def masked_metrics(run: Path, masks: list[np.ndarray], names: list[str] | None = None) -> dict[str, float | None]:
+    """Mean over held-out views of PSNR inside / outside the masks, from the saved renders.
+
+    `names`: the held-out views' image names in test order, checked against the run's record of
+    what each PNG shows (check_rendered_views)."""
+    if not masks:  # nothing to score inside or outside
+        return {"PSNR-mask": None, "PSNR-outside": None}
     test_dir = latest_test_dir(run)
+    check_rendered_views(test_dir, len(masks), names)
     inside, outside = [], []
     for index, mask in enumerate(masks):
         name = f"{index:05d}.png"
@@ -365,6 +393,10 @@ def train_cpu_seconds(log: list[dict]) -> float | None:
     return ends[-1].get("train_cpu_seconds")
 
 
+def _test_names(scene) -> list[str] | None:
+    return None if scene is None else [c.image_name for c in scene.test_cameras]
+
+
 def summarise(run: Path, masks: list[np.ndarray], scene) -> dict:
     """The figures of one finished run."""
     results = json.loads((run / "results.json").read_text())
@@ -374,7 +406,7 @@ def summarise(run: Path, masks: list[np.ndarray], scene) -> dict:
     chunks = run / CHUNKS_FILE
     if chunks.is_file():  # a chunked run: every call's wall seconds (start-up included)
         end = [{"wall_seconds": sum(c["seconds"] for c in json.loads(chunks.read_text())["chunks"])}]
-    row = {"PSNR": results[key]["PSNR"], "SSIM": results[key]["SSIM"], **masked_metrics(run, masks),
+    row = {"PSNR": results[key]["PSNR"], "SSIM": results[key]["SSIM"], **masked_metrics(run, masks, _test_names(scene)),
            "mask %": 100.0 * float(np.mean([m.mean() for m in masks])) if masks else None,
            "train_s": end[-1].get("wall_seconds") if end else None, "train_cpu_s": train_cpu_seconds(log),
            "code": json.loads((run / DONE_FILE).read_text()).get("code"), "MLP": mlp_arithmetic_of(run)}

@@ -185,6 +185,8 @@ class CanonicalConstruction:
                                           cache_dir=self._run_dir(ctx) / "canonical",
                                           progress=not ctx.args.run.quiet, anchors=anchors)
             static, dynamic, times, groups, described = self._compose(ctx, space, masks)
+            if len(space.static) == 0:  # the host's cloud stood in: its depth check compares it with itself
+                what = f"{what} without static points (the host's {ctx.point_cloud_source} cloud as the static cloud)"
             residual = prior_residual(space.report["alignment"].get("fits") or {},
                                       self.info.get("disparity_field", {}).get("held_out", {}))
             limit, flag = self.depth_error_limit(flow=not disparity)  # no disparity: the flow provider

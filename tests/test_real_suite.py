@@ -129,6 +129,39 @@ def test_masked_metrics_average_over_views_and_check_shapes(tmp_path):
         real_suite.masked_metrics(tmp_path / "run", [np.zeros((2, 2), bool)] * 2)
 
 
+def test_masked_metrics_refuse_renders_of_another_split(tmp_path):
+    """Masks pair with the numbered renders by position: a render folder of other views (a capture
+    prepared again, another hold-out) is refused, by the run's views.json where it has one, by
+    the count of renders otherwise."""
+    gt = np.zeros((4, 4, 3), np.uint8)
+    mask = np.zeros((4, 4), bool)
+    _fake_run(tmp_path / "run", [gt, gt], [gt, gt])
+    with pytest.raises(real_suite.SuiteError, match="2 rendered views for 3 held-out views"):
+        real_suite.masked_metrics(tmp_path / "run", [mask] * 3)
+    views = tmp_path / "run" / "test" / "ours_10" / "views.json"
+    views.write_text(json.dumps({"00000.png": "00000", "00001.png": "00008"}))
+    assert real_suite.masked_metrics(tmp_path / "run", [mask] * 2, ["00000", "00008"])["PSNR-outside"] == math.inf
+    with pytest.raises(real_suite.SuiteError, match="00001.png renders '00008', the held-out view with this mask is '00007'"):
+        real_suite.masked_metrics(tmp_path / "run", [mask] * 2, ["00000", "00007"])
+
+
+def test_evaluation_records_which_view_each_png_is(tmp_path):
+    import torch
+
+    from baselines.data.cameras import Camera
+    from baselines.fourdgs.evaluate import VIEWS_FILE, evaluate_cameras
+    from tests._model_helpers import make_model
+
+    viewmat = torch.eye(4)
+    viewmat[2, 3] = 3.0
+    K = torch.tensor([[16.0, 0, 8.0], [0, 16.0, 8.0], [0, 0, 1]])
+    cameras = [Camera(uid=k, image_name=name, width=16, height=16, K=K, viewmat=viewmat, time=0.5,
+                      image=torch.zeros(16, 16, 3)) for k, name in enumerate(("00003", "00011"))]
+    evaluate_cameras(make_model(40), cameras, "coarse", torch.zeros(3), "reference", out_dir=tmp_path)
+    assert json.loads((tmp_path / VIEWS_FILE).read_text()) == {"00000.png": cameras[0].image_name,
+                                                               "00001.png": cameras[1].image_name}
+
+
 def test_run_one_redoes_a_torn_run_and_refuses_a_run_of_another_command(tmp_path, monkeypatch):
     capture = CAPTURES["nvidia_balloon1"]
     schedule = {"coarse_iterations": 3, "iterations": 5, "seed": 0}

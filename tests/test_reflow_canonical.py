@@ -305,3 +305,27 @@ def test_canonical_max_points_help_says_the_voxel_0_cloud_is_not_limited():
 
     help_text = {f.name: f.metadata["help"] for f in dataclasses.fields(ReFlowParams)}["canonical_max_points"]
     assert "not applied with --canonical_voxel 0" in help_text
+
+
+def test_a_canonical_space_without_static_points_says_the_hosts_cloud_stood_in(tiny_scene, tmp_path):
+    """Every pixel masked as moving: the canonical space has no static point and the host's cloud is
+    the static cloud. Before, the run recorded "canonical space" as used and a depth check that had
+    compared the host's cloud with itself as passed (DAVIS blackswan), as if the fused cloud had been
+    checked."""
+    import shutil
+
+    import cv2
+
+    from baselines.fourdgs.app import train_from_argv
+    from tests.test_trainer import base_argv
+
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_scene, scene)
+    for path in sorted((scene / "motion_masks").iterdir()):
+        mask = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        mask[:] = 255
+        cv2.imwrite(str(path), mask)
+    train_from_argv(base_argv(scene, tmp_path / "run", 0, 1, "--plugin", "reflow", "--flow_vis_every", "0"))
+    info = json.loads((tmp_path / "run" / "results.json").read_text())["reflow"]
+    assert info["canonical_check"]["used"].startswith("canonical space without static points (the host's")
+    assert info["initial_cloud"].startswith("canonical space without static points")

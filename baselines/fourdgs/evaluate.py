@@ -3,6 +3,7 @@
     <model>/<split>/ours_<iter>/renders/00000.png   rendered test (or train) views
     <model>/<split>/ours_<iter>/gt/00000.png        ground truth
     <model>/<split>/ours_<iter>/depth/00000.png     expected depth, colour-mapped (near = bright)
+    <model>/<split>/ours_<iter>/views.json          ours: each PNG's camera, {"00000.png": image_name}
     <model>/video/ours_<iter>/video_rgb.mp4         novel-time video (scene.video_cameras)
     <model>/results.json, per_view.json             metrics as 4DGS's metrics.py writes them
 
@@ -138,10 +139,13 @@ def evaluate_cameras(
         for key in result.mean:
             row.setdefault(key, None)
     result.render_ms = 1000.0 * elapsed / max(1, len(cameras))
+    if out_dir is not None and cameras:  # the PNGs are numbered: say which view each one is
+        _write_json(out_dir / VIEWS_FILE, {f"{idx:05d}.png": cam.image_name for idx, cam in enumerate(cameras)})
     return result
 
 
 REGIONS = ("dynamic", "static")
+VIEWS_FILE = "views.json"
 
 
 def region_metrics(image: Tensor, gt: Tensor, mask: Tensor) -> dict[str, float | None]:
