@@ -6,6 +6,11 @@ import os
 # torch's OpenMP threads sleep instead of spinning while they wait: on a busy 2-core machine a
 # spinning pool makes the rasterizer's many small tensor ops 10-50x slower. Must precede torch.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# pytest-xdist workers share the CPUs: each gets its share of threads (at least 1), else every
+# worker's pool would claim all of them and the workers would wait on one another's threads.
+if os.environ.get("PYTEST_XDIST_WORKER_COUNT"):
+    _cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, _cpus // int(os.environ["PYTEST_XDIST_WORKER_COUNT"]))))
 
 import json  # noqa: E402
 import shutil  # noqa: E402

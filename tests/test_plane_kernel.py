@@ -65,7 +65,7 @@ def _values_and_grads(engine, monkeypatch, table, layout, coords, need_time=True
 @pytest.mark.parametrize("channels", [16, 5, 32, 1])
 def test_kernel_equals_torch_path_on_hexplane_layouts(compiled, monkeypatch, dtype, channels):
     layout = _hexplane_layout([6, 5, 4, 3], [1, 2])
-    table = torch.rand(layout.num_cells, channels, dtype=dtype) * 2 - 0.5
+    table = torch.rand(layout.num_cells, channels, dtype=dtype, generator=torch.Generator().manual_seed(channels)) * 2 - 0.5
     coords = _coordinates(700, dtype, seed=channels)
     want, want_grads = _values_and_grads("torch", monkeypatch, table, layout, coords)
     got, got_grads = _values_and_grads("kernel", monkeypatch, table, layout, coords)
@@ -73,8 +73,10 @@ def test_kernel_equals_torch_path_on_hexplane_layouts(compiled, monkeypatch, dty
     # A coordinate's gradient sums channels x corners x planes float32 products; the two paths (and
     # torch's own reductions, whose order depends on the threads free at the time) add them in
     # different orders, so a near-zero sum of O(1) terms differs by a few ulps of the TERMS: measured
-    # up to 1.9e-6 on a loaded 2-core machine. Values sum a few corners per plane: the tight bound holds.
-    grad_tol = {"rtol": 1e-5, "atol": 1e-5} if dtype == torch.float32 else tol
+    # up to 1.9e-6 on a loaded 2-core machine, 1.7e-5 with 32 channels (a random table drawn after
+    # other tests): the rounding grows with the terms summed, so the bound scales with the channels.
+    # Values sum a few corners per plane: the tight bound holds.
+    grad_tol = {"rtol": 1e-5, "atol": 1e-6 * max(10, channels)} if dtype == torch.float32 else tol
     torch.testing.assert_close(got, want, **tol)
     for name, g, w in zip(("table", "space", "time"), got_grads, want_grads):
         torch.testing.assert_close(g, w, **grad_tol, msg=lambda m, name=name: f"{name} gradient: {m}")
