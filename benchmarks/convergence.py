@@ -225,10 +225,7 @@ def main(argv: list[str] | None = None) -> int:
             raise CaptureError(f"--jobs {args.jobs}: want 1 or more trainings at once")
         real_suite.check_chunk_seconds(args.chunk_seconds)
         captures = select(args.captures)
-        methods = [m for m in args.methods.split(",") if m]
-        unknown = [m for m in methods if m not in real_suite.METHODS]
-        if unknown:
-            raise CaptureError(f"unknown method(s) {unknown}; known: {', '.join(real_suite.METHODS)}")
+        methods = real_suite.parse_methods(args.methods)
         try:
             budgets = sorted({int(b) for b in args.budgets.split(",") if b})
         except ValueError:

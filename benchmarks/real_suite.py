@@ -530,6 +530,18 @@ def parse_resolutions(text: str | None, captures: list[Capture]) -> dict[str, in
     return chosen
 
 
+def parse_methods(text: str) -> list[str]:
+    """`--methods` as a list: known names, at least one (an empty list would print an empty table
+    and exit 0). CaptureError otherwise."""
+    methods = [m for m in text.split(",") if m]
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise CaptureError(f"--methods: unknown method(s) {unknown}; known: {', '.join(METHODS)}")
+    if not methods:
+        raise CaptureError(f"--methods {text!r}: name at least one of {', '.join(METHODS)}")
+    return methods
+
+
 def check_chunk_seconds(seconds: float | None) -> None:
     """`--chunk-seconds` must leave time to train: 0 or less would end every call at once with exit 3
     ("call again"), so a calling loop would never finish. CaptureError otherwise."""
@@ -576,10 +588,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.fetch_instructions:
             print("\n\n".join(fetch_instructions(c, args.data) for c in captures))
             return 0
-        methods = [m for m in args.methods.split(",") if m]
-        unknown = [m for m in methods if m not in METHODS]
-        if unknown:
-            raise CaptureError(f"unknown method(s) {unknown}; known: {', '.join(METHODS)}")
+        methods = parse_methods(args.methods)
         resolutions = parse_resolutions(args.resolution, captures)
         captures = [dataclasses.replace(c, resolution=resolutions[c.name]) for c in captures]
         require_ready(captures, args.data)

@@ -169,10 +169,11 @@ def test_downscale_refuses_a_product_that_train_py_reads_as_a_width():
 
 
 @pytest.mark.parametrize("main", [convergence.main, real_suite.main])
-@pytest.mark.parametrize("argv", [["--chunk-seconds", "0"], ["--chunk-seconds", "-5"], ["--jobs", "0"]])
+@pytest.mark.parametrize("argv", [["--chunk-seconds", "0"], ["--chunk-seconds", "-5"], ["--jobs", "0"], ["--methods", ","],
+                                  ["--methods", "baseline,reflw"]])
 def test_chunk_seconds_and_jobs_that_cannot_train_are_one_line_errors(tmp_path, capsys, main, argv):
     """--chunk-seconds 0 made every call exit 3 ('call again') at once, forever; real_suite.py took
-    --jobs 0 (convergence.py refused it)."""
+    --jobs 0 (convergence.py refused it); --methods naming none printed an empty table and exit 0."""
     assert main([*argv, "--data", str(tmp_path), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and err.count("\n") == 1 and argv[0] in err, err
