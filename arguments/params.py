@@ -152,7 +152,8 @@ class ModelHiddenParams:
     net_width: int = param(64, "width of the deformation MLP", check=_check_positive)
     timebase_pe: int = param(4, "4DGS: input encoding of a time network that 4DGS builds and never "
                                 "calls; built here too, so its size changes only the random initial "
-                                "weights drawn after it (as in 4DGS), not what is computed")
+                                "weights drawn after it (as in 4DGS), not what is computed",
+                             check=_check_non_negative)
     defor_depth: int = param(1, "number of hidden layers of the deformation MLP",
                              check=_check_non_negative)
     posebase_pe: int = param(10, "4DGS: position encoding whose result is discarded (" +
@@ -162,9 +163,10 @@ class ModelHiddenParams:
     opacity_pe: int = param(2, "4DGS: opacity encoding, unused (" + _COMPAT_4DGS_UNUSED + ")",
                             compat=True)
     timenet_width: int = param(64, "4DGS: width of the never-called time network (see timebase_pe: "
-                                   "changes only the random initial weights drawn after it)")
+                                   "changes only the random initial weights drawn after it)",
+                               check=_check_positive)
     timenet_output: int = param(32, "4DGS: output width of the never-called time network (see "
-                                    "timebase_pe)")
+                                    "timebase_pe)", check=_check_positive)
     bounds: float = param(1.6, "initial half-extent of the HexPlane bounding box (reset from the "
                                "point cloud)")
     plane_tv_weight: float = param(0.0001, "total-variation loss weight of the spatial planes")

@@ -445,3 +445,16 @@ def test_panoptic_only_flags_on_another_dataset_are_one_error_line(tiny_scene, t
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{named}: read by the panoptic reader only" in err[0], err
     assert not (tmp_path / "run" / "point_cloud").exists()
+
+
+@pytest.mark.parametrize("flag, value, message", [("--timenet_width", "0", "must be > 0, got 0"),
+                                                   ("--timenet_output", "0", "must be > 0, got 0"),
+                                                   ("--timebase_pe", "-1", "must be >= 0, got -1")])
+def test_a_time_network_that_cannot_be_built_is_a_flag_error(flag, value, message, capsys):
+    """Before: torch failed when the model was built, after the initial cloud."""
+    from arguments import parse_train_args
+
+    with pytest.raises(SystemExit) as stop:
+        parse_train_args([flag, value])
+    assert stop.value.code == 2
+    assert f"argument {flag}: {message}" in capsys.readouterr().err
