@@ -424,3 +424,18 @@ def test_an_overlap_below_one_is_refused_before_any_frame_is_read(tmp_path, over
     with pytest.raises(PrepareError, match=f"--overlap {overlap}: must be at least 1"):
         options.validate()
     PrepareOptions(source=tmp_path / "clip.mp4", output=tmp_path / "out", sfm=SfmOptions(overlap=1)).validate()
+
+
+@pytest.mark.parametrize("threads, refused", [(0, True), (-2, True), (-1, False), (2, False)])
+def test_threads_are_at_least_one_or_every_core(tmp_path, threads, refused):
+    """--threads 0 or below -1 went to pycolmap as they were; -1 is COLMAP's "every core"."""
+    from baselines.prepare.errors import PrepareError
+    from baselines.prepare.pipeline import PrepareOptions
+    from baselines.prepare.sfm import SfmOptions
+
+    options = PrepareOptions(source=tmp_path / "clip.mp4", output=tmp_path / "out", sfm=SfmOptions(threads=threads))
+    if refused:
+        with pytest.raises(PrepareError, match=f"--threads {threads}: must be at least 1, or -1 for every core"):
+            options.validate()
+    else:
+        options.validate()

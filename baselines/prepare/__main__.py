@@ -46,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--camera-model", default="SIMPLE_PINHOLE", choices=CAMERA_MODELS,
                         help="COLMAP camera model shared by all frames (distortion is ignored by the readers)")
     parser.add_argument("--overlap", type=int, default=10, help="sequential matching: frames matched ahead (at least 1; default 10)")
-    parser.add_argument("--threads", type=int, default=1, help="threads for pycolmap (default 1)")
+    parser.add_argument("--threads", type=int, default=1, help="threads for pycolmap (default 1; -1: every core, COLMAP's convention)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of RANSAC and the mapper")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     return parser

@@ -69,6 +69,8 @@ class PrepareOptions:
             raise PrepareError(f"--max-frames {self.max_frames}: must be at least 2")
         if self.width is not None and self.width < 32:
             raise PrepareError(f"--size {self.width}: must be at least 32 pixels")
+        if self.sfm.threads < 1 and self.sfm.threads != -1:
+            raise PrepareError(f"--threads {self.sfm.threads}: must be at least 1, or -1 for every core")
         if self.sfm.overlap < 1:  # 0 matches no pair: SfM would fail only after extracting every frame's features
             raise PrepareError(f"--overlap {self.sfm.overlap}: must be at least 1 (frames matched ahead)")
         if self.sfm.camera_model not in CAMERA_MODELS:
