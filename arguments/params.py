@@ -256,14 +256,15 @@ class OptimizationParams:
                                         check=_check_positive)
     densification_interval: int = param(100, "iterations between densification steps",
                                         check=_check_positive)
-    densify_from_iter: int = param(500, "first iteration of densification")
-    densify_until_iter: int = param(15_000, "last iteration of densification")
+    densify_from_iter: int = param(500, "densification from the iterations after this one (4DGS: iteration > it)")
+    densify_until_iter: int = param(15_000, "densification (and its gradient statistics) up to the "
+                                            "iteration before this one (4DGS: iteration < it)")
     densify_grad_threshold_coarse: float = param(0.0002, "view-space gradient threshold for "
                                                          "densification, coarse stage")
     densify_grad_threshold_fine_init: float = param(0.0002, "same, fine stage, at its start")
     densify_grad_threshold_after: float = param(0.0002, "same, fine stage, at densify_until_iter "
                                                         "(linear in between)")
-    pruning_from_iter: int = param(500, "first iteration of large-count pruning")
+    pruning_from_iter: int = param(500, "large-count pruning from the iterations after this one (4DGS: iteration > it)")
     pruning_interval: int = param(100, "iterations between large-count pruning steps",
                                   check=_check_positive)
     opacity_threshold_coarse: float = param(0.005, "opacity below which Gaussians are pruned, "
