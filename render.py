@@ -4,7 +4,9 @@
     python render.py -m output/balloon [--iteration N] [--skip_train] [--skip_test] [--skip_video]
 
 The training run's configuration (dataset, plugins, components) is read back from the model
-directory (config.json, else 4DGS's cfg_args); flags given here override it.
+directory (config.json, else 4DGS's cfg_args); flags given here override it, except that the
+model's shape (net_width, defor_depth, kplanes_config, sh_degree, ...) is fixed by its saved files:
+a load that fails names the shape flags given here.
 """
 from __future__ import annotations
 

@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import argparse
 import ast
+import copy
 import difflib
+import json
 import os
 import sys
 import typing
@@ -22,8 +24,8 @@ from typing import Any
 
 from .config import load_configs, read_config_chain
 from .fields import CoercionError, FieldSpec, coerce, split_comma_list
-from .layers import ConfigError, Layer, Schema, build_schema, merge_layers, removed_note, resolve, \
-    warn_compat_fields
+from .layers import ConfigError, Layer, Schema, build_schema, merge_layers, merge_value, removed_note, resolve, \
+    strip_markers, warn_compat_fields
 from .params import (HOST_GROUPS, ModelHiddenParams, ModelParams, OptimizationParams,
                      PipelineParams, RenderParams, RunParams)
 from .saved import model_dir_of_checkpoint, read_saved_config, read_saved_model_config, read_saved_plugins
@@ -69,6 +71,10 @@ class RenderArgs:
     render: RenderParams
     extra: dict[str, Any] = field(default_factory=dict)
     sources: dict[str, str] = field(default_factory=dict)
+    # model-shape fields (ModelHiddenParams, sh_degree) that --configs or flags typed here set to
+    # another value than the trained run's, as "--name VALUE (trained: SAVED)"; named when the
+    # saved files do not fit the model these values build
+    shape_overrides: list[str] = field(default_factory=list)
 
 
 def parse_train_args(argv: list[str] | None = None,
@@ -147,7 +153,37 @@ def parse_render_args(argv: list[str] | None = None,
                       opt=instances["OptimizationParams"],
                       hidden=instances["ModelHiddenParams"], run=instances["RunParams"],
                       render=render["RenderParams"], extra={k: instances[k] for k in extra},
-                      sources={**sources, **render_sources})
+                      sources={**sources, **render_sources},
+                      shape_overrides=_shape_overrides(model_path, run_schema, instances))
+
+
+def _shape_overrides(model_path: str, schema: Schema, instances: dict[str, Any]) -> list[str]:
+    """Model-shape fields whose value for this render differs from the trained run's saved one."""
+    saved = read_saved_model_config(model_path, schema)
+    found = []
+    for group, names in saved.values.items():
+        for name, trained in names.items():
+            value = getattr(instances[group], name)
+            trained = strip_markers(merge_value(copy.deepcopy(schema[group][name].default), trained))
+            if trained != value:
+                found.append(f"{_flag_text(name, value)} (trained: {_value_text(trained)})")
+    return found
+
+
+def _flag_text(name: str, value: Any) -> str:
+    """``--name value`` as typed on the command line (booleans as --name / --no-name)."""
+    if isinstance(value, bool):
+        return f"--{name}" if value else f"--no-{name}"
+    return f"--{name} {_value_text(value)}"
+
+
+def _value_text(value: Any) -> str:
+    """A value as typed after its flag (lists space-separated, dicts as JSON; booleans as is)."""
+    if isinstance(value, (list, tuple)):
+        return " ".join(str(v) for v in value)
+    if isinstance(value, dict):
+        return json.dumps(value, separators=(",", ":"))
+    return str(value)
 
 
 def peek_plugins(argv: list[str] | None = None, *, from_model_dir: bool = False) -> list[str]:

@@ -213,6 +213,22 @@ def test_render_command_writes_4dgs_layout_and_metrics(trained_run):
         render_from_argv(["-m", str(out), "--iteration", "999"])
 
 
+def test_render_names_the_flags_that_changed_the_trained_model_shape(trained_run):
+    """Shape values given to render.py (flags or --configs) that the saved files cannot fit are
+    named in the load error with the trained values; a shape-neutral flag (--no_dx) still renders."""
+    from baselines.fourdgs.app import render_from_argv
+
+    out, _ = trained_run
+    with pytest.raises(ValueError, match=r"given here: --net_width 16 \(trained: \d+\), --no_grid "
+                                         r"\(trained: False\): a trained model's shape"):
+        render_from_argv(["-m", str(out), "--skip_train", "--skip_video", "--net_width", "16", "--no_grid"])
+    config = out.parent / "narrow.py"
+    config.write_text("ModelHiddenParams = dict(defor_depth=3)\n")
+    with pytest.raises(ValueError, match=r"deformation state does not fit.*given here: --defor_depth 3 \(trained"):
+        render_from_argv(["-m", str(out), "--skip_train", "--skip_video", "--configs", str(config)])
+    render_from_argv(["-m", str(out), "--skip_train", "--skip_video", "--no_dx"])
+
+
 def test_non_finite_gradient_stops_the_run_naming_the_group(tiny_scene, tmp_path):
     """One NaN gradient would make Adam write NaN into the parameters: with --nonfinite_skips 0 the
     run stops before the step."""

@@ -402,7 +402,7 @@ def load_run(argv: list[str]) -> LoadedRun:
     from arguments import parse_render_args, peek_plugins
     from baselines.data import load_scene
 
-    from .checkpoint import find_latest_iteration, point_cloud_dir
+    from .checkpoint import FolderContentError, find_latest_iteration, point_cloud_dir
 
     plugin_classes = [load_plugin_class(name) for name in peek_plugins(argv, from_model_dir=True)]
     extra_groups: dict[str, type] = {}
@@ -430,7 +430,15 @@ def load_run(argv: list[str]) -> LoadedRun:
     plugins = [cls({g: args.extra[g] for g in cls.param_groups}, components[cls.name]) for cls in plugin_classes]
     trainer = Trainer(args, scene, plugins, model_path)
     trainer.run_log.quiet = args.render.quiet  # this command's --quiet, not the training run's saved one
-    trainer.load_model_from(pc_dir)
+    try:
+        trainer.load_model_from(pc_dir)
+    except FolderContentError:
+        raise  # a missing or damaged file: no flag fixes that
+    except ValueError as err:
+        if not args.shape_overrides:
+            raise
+        raise ValueError(f"{err}; given here: {', '.join(args.shape_overrides)}: a trained model's "
+                         f"shape comes from its run ({model_path}), leave these flags out") from None
     return LoadedRun(trainer, args, iteration)
 
 
