@@ -59,11 +59,13 @@ def mask_scores(masks: list[np.ndarray], truth: list[np.ndarray]) -> dict[str, f
 
 
 def auto_mask_scores(capture: Capture, data_root: Path) -> dict[str, float] | None:
-    """Scores of prepare's auto masks against the annotations, or None: the dataset's posed masks
-    (registered frames) when it has them, else the pre-SfM ones (every extracted frame)."""
+    """Scores of prepare's auto masks against the annotations, or None: the dataset's posed or
+    background masks (registered frames) when it has them, else the pre-SfM ones (every extracted
+    frame)."""
     mask_dir = dataset_dir(capture, data_root) / ".prepare" / "masks"
     report_path = dataset_dir(capture, data_root) / "prepare_report.json"
-    if report_path.is_file() and json.loads(report_path.read_text()).get("masks", {}).get("stage") == "posed":
+    if report_path.is_file() and json.loads(report_path.read_text()).get("masks", {}).get("stage") in ("posed",
+                                                                                                 "background"):
         mask_dir = dataset_dir(capture, data_root) / "motion_masks"
     annotations = sorted(truth_dir(capture, data_root).glob("*.png"))
     if not mask_dir.is_dir() or not annotations:

@@ -14,15 +14,17 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Sequence
 
 import cv2
 import numpy as np
 import pytest
 
 from baselines.data import DatasetError, load_scene
-from baselines.data.colmap_compat import read_reconstruction
+from baselines.data.colmap_compat import image_cam_from_world, read_reconstruction
+from baselines.prepare import fixed_centre
 from baselines.prepare.dataset import MEDIAN_DEPTH, frame_times, median_point_depth
-from baselines.prepare.evaluate import compare_with_truth, pose_errors, umeyama
+from baselines.prepare.evaluate import compare_with_truth, pose_errors, rotation_angle_deg, umeyama
 from baselines.prepare.frames import select_frames
 from baselines.prepare.report import _mapper_line
 from baselines.prepare.sfm import PATH_JUMP_FACTOR, continuous_stretch, path_breaks
@@ -99,10 +101,10 @@ def test_auto_masks_cover_the_moving_object(clip, prepared):
     assert sum(int((f & t).sum()) for f, t in zip(found, true)) / sum(int(t.sum()) for t in true) > 0.2
 
 
-def _masks_iou(folder: Path, true_dir: Path) -> float:
+def _masks_iou(folder: Path, true_dir: Path, frames: int = FRAMES) -> float:
     found = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) > 0 for p in sorted(folder.glob("*.png"))]
     true = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) > 0 for p in sorted(true_dir.glob("*.png"))]
-    assert len(found) == len(true) == FRAMES
+    assert len(found) == len(true) == frames
     return sum(int((f & t).sum()) for f, t in zip(found, true)) / sum(int((f | t).sum()) for f, t in zip(found, true))
 
 
@@ -314,15 +316,60 @@ def test_missing_input_and_bad_options(clip, tmp_path):
     assert_one_line_error(quiet(clip[1], taken), "was not written by prepare")
 
 
-def test_static_camera(tmp_path):
-    _, video = render_clip(tmp_path, frames=8, width=WIDTH, height=HEIGHT, camera="static")
-    assert_one_line_error(quiet(video, tmp_path / "out", "--masks", "none"), "camera does not move", "try:")
-    assert not (tmp_path / "out" / ".prepare" / "database.db").exists()  # stopped before SfM
+def _fixed_centre_rotation_errors(dataset: Path, scene_dir: Path) -> list[float]:
+    """Per frame, the angle (degrees) between R_k R_0^T of the dataset and of the truth."""
+    model = read_reconstruction(dataset / "sparse" / "0")
+    estimated = {image.name: image_cam_from_world(image)[:, :3] for image in model.images.values()}
+    frames = truth(scene_dir)
+    true = [np.asarray(f["viewmat"], np.float64)[:3, :3] for f in frames]
+    est = [estimated[f"{k:05d}.png"] for k in range(len(frames))]
+    return [rotation_angle_deg(e @ est[0].T, t @ true[0].T) for e, t in zip(est, true)]
 
 
-def test_pure_rotation(tmp_path):
-    _, video = render_clip(tmp_path, frames=10, width=WIDTH, height=HEIGHT, camera="pan")
-    assert_one_line_error(quiet(video, tmp_path / "out", "--masks", "none"), "only rotates", "try:")
+def test_static_camera_gets_one_pose_without_sfm(tmp_path):
+    """A tripod shot: every frame at one centre and rotation, SfM skipped, the report says why;
+    --no-fixed-centre refuses it before SfM as before."""
+    scene_dir, video = render_clip(tmp_path, frames=8, width=WIDTH, height=HEIGHT, camera="static")
+    proc = quiet(video, tmp_path / "out")
+    assert proc.returncode == 0, proc.stderr
+    assert "fixed centre (the camera does not move)" in proc.stdout and "8/8 frames registered" in proc.stdout
+    report = json.loads((tmp_path / "out" / "prepare_report.json").read_text())
+    assert report["mapper"]["used"] == "fixed centre" and report["mapper"]["reason"] == "static"
+    assert not report["mapper"]["fixed_centre"]["focal_estimated"]  # nothing turned: the prior
+    assert report["camera"]["params"][0] == pytest.approx(1.2 * WIDTH)
+    assert not (tmp_path / "out" / ".prepare" / "database.db").exists()  # no feature extraction
+    assert max(_fixed_centre_rotation_errors(tmp_path / "out", scene_dir)) < 0.2
+    model = read_reconstruction(tmp_path / "out" / "sparse" / "0")
+    centres = [-image_cam_from_world(i)[:, :3].T @ image_cam_from_world(i)[:, 3] for i in model.images.values()]
+    assert np.allclose(centres, 0.0)
+    scene = load_scene(tmp_path / "out", eval=True)  # the host reads it, the cloud in front of the camera
+    assert scene.point_cloud is not None and len(scene.point_cloud.points) > 1000
+    assert (scene.point_cloud.points[:, 2] > 0).all()  # the world is the camera's frame
+    # the masks: background subtraction, closer to the truth than the pre-SfM estimator's (0.94 / 0.76)
+    assert report["masks"]["stage"] == "background"
+    background_iou = _masks_iou(tmp_path / "out" / "motion_masks", scene_dir / "motion_masks", 8)
+    assert background_iou > 0.85 and background_iou > _masks_iou(tmp_path / "out" / ".prepare" / "masks",
+                                                                 scene_dir / "motion_masks", 8) + 0.05
+    assert_one_line_error(quiet(video, tmp_path / "refused", "--no-fixed-centre"), "camera does not move", "try:")
+    assert not (tmp_path / "refused" / ".prepare" / "database.db").exists()  # stopped before SfM
+
+
+def test_pure_rotation_gets_rotations_and_focal_from_homographies(tmp_path):
+    """A camera that only turns (a 30-degree pan): SfM cannot triangulate, the fixed-centre model
+    recovers each frame's rotation and the focal length; --no-fixed-centre gives the SfM error."""
+    scene_dir, video = render_clip(tmp_path, frames=10, width=WIDTH, height=HEIGHT, camera="pan")
+    proc = quiet(video, tmp_path / "out", "--masks", "none")
+    assert proc.returncode == 0, proc.stderr
+    assert "fixed centre (the camera only turns" in proc.stdout
+    report = json.loads((tmp_path / "out" / "prepare_report.json").read_text())
+    assert report["registered_frames"] == 10 and report["mapper"]["reason"] == "rotation only"
+    assert report["mapper"]["fixed_centre"]["focal_estimated"]
+    true_focal = truth(scene_dir)[0]["K"][0][0]
+    assert abs(report["camera"]["params"][0] / true_focal - 1) < 0.03  # the prior (1.2 x 160) is 39% off
+    errors = _fixed_centre_rotation_errors(tmp_path / "out", scene_dir)
+    assert max(errors) < 0.5, errors  # over a 30-degree turn
+    assert_one_line_error(quiet(video, tmp_path / "refused", "--masks", "none", "--no-fixed-centre"),
+                          "only rotates", "try:")
 
 
 def test_too_few_matches(tmp_path):
@@ -338,6 +385,39 @@ def test_too_few_matches(tmp_path):
 
 
 # --- units ----------------------------------------------------------------------------------
+
+
+def _turn(axis: Sequence[float], degrees: float) -> np.ndarray:
+    return cv2.Rodrigues(np.radians(degrees) * np.asarray(axis, np.float64) / np.linalg.norm(axis))[0]
+
+
+def test_focal_length_from_the_homographies_of_a_turning_camera():
+    """H = K R K^-1 of a few turns: the focal length under which they are rotations is K's; a camera
+    that barely turns keeps the prior, and no homography at all too."""
+    width, height, focal = 320, 180, 250.0
+    K = fixed_centre.intrinsics(focal, width, height)
+    turns = [_turn((0, 1, 0.1), 4), _turn((0.2, 1, 0), 3), _turn((1, 0.3, 0), 2)]
+    homographies = [2.5 * K @ r @ np.linalg.inv(K) for r in turns]  # any scale
+    found, estimated = fixed_centre.estimate_focal(homographies, width, height)
+    assert estimated and found == pytest.approx(focal, rel=1e-3)
+    tiny = [K @ _turn((0, 1, 0), 0.2) @ np.linalg.inv(K)]
+    assert fixed_centre.estimate_focal(tiny, width, height) == (1.2 * width, False)
+    rng = np.random.default_rng(0)  # a tripod's jitter: 80 small turns back and forth, 0.3 degrees net
+    jitter = [K @ _turn(rng.normal(size=3), 0.1 * (-1) ** k) @ np.linalg.inv(K) for k in range(80)]
+    assert fixed_centre.estimate_focal(jitter, width, height) == (1.2 * width, False)
+    assert fixed_centre.estimate_focal([], width, height) == (1.2 * width, False)
+
+
+def test_chained_rotations_compose_and_a_missing_pair_holds_the_rotation():
+    K = fixed_centre.intrinsics(200.0, 160, 120)
+    first, second = _turn((0, 1, 0), 5), _turn((1, 0, 0), 3)
+    rotations = fixed_centre.chained_rotations([K @ first @ np.linalg.inv(K), None,
+                                                K @ second @ np.linalg.inv(K)], K)
+    assert len(rotations) == 4 and np.allclose(rotations[0], np.eye(3))
+    assert np.allclose(rotations[1], first) and np.allclose(rotations[2], first)
+    assert np.allclose(rotations[3], second @ first, atol=1e-9)
+    reflected = np.diag([1.0, 1.0, -1.0]) @ first
+    assert np.linalg.det(fixed_centre.nearest_rotation(3 * reflected)) == pytest.approx(1.0)
 
 
 def test_umeyama_recovers_a_similarity():

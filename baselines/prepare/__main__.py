@@ -49,6 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--threads", type=int, default=1, help="threads for pycolmap (default 1; -1: every core, COLMAP's convention)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of RANSAC and the mapper")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("--no-fixed-centre", dest="fixed_centre", action="store_false",
+                        help="refuse a camera that does not move or only turns (by default such a tripod shot is "
+                             "written with every frame at one centre, rotations from homographies, depth unknown)")
     return parser
 
 
@@ -57,6 +60,7 @@ def run(argv: Sequence[str] | None = None) -> dict:
     args = build_parser().parse_args(argv)
     options = PrepareOptions(source=args.source, output=args.output, fps=args.fps, max_frames=args.max_frames,
                              width=args.size, masks=args.masks, progress=not args.quiet,
+                             fixed_centre=args.fixed_centre,
                              sfm=SfmOptions(camera_model=args.camera_model, overlap=args.overlap,
                                             threads=args.threads, seed=args.seed))
     report = prepare(options)

@@ -1,6 +1,7 @@
 """Does the camera move enough for SfM? Cheap checks on dense flow between frames.
 
-    check = measure_parallax(images)        # before SfM: static camera -> PrepareError
+    check = measure_parallax(images)        # before SfM: check.static skips SfM (fixed_centre.py)
+    require_camera_motion(check)            # or, with --no-fixed-centre, refuses a static camera
     why = explain_failure(check)            # after a failed SfM: the likely cause, in words
 
 For a few frame pairs spread over the clip (the first frame with later ones, and neighbours),

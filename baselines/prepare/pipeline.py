@@ -2,7 +2,9 @@
 
 Stages (each skipped when its key, see `cache.py`, matches a finished run in `<out>/.prepare/`):
 frames -> parallax check -> masks -> features -> matching -> mapping -> posed masks; then the
-dataset and the report are written. The pre-SfM masks (`--masks auto`, the default) keep movers
+dataset and the report are written. A camera that does not move skips features, matching and
+mapping, and one that only turns replaces a failed mapping: both get every frame at one centre
+(`fixed_centre.py`; `--no-fixed-centre` refuses them instead). The pre-SfM masks (`--masks auto`, the default) keep movers
 out of feature extraction and are the dataset's `motion_masks/`; with `--masks posed` the
 dataset gets the posed masks instead (`remask.py`: re-estimated with the registered cameras); a
 folder of masks is written as given. Checks that need no decoding (missing input, empty or mixed-size folder,
@@ -23,7 +25,7 @@ from .cache import StageCache, file_identity
 from .dataset import MEDIAN_DEPTH, frame_times, rescale, write_dataset
 from .errors import PrepareError
 from .frames import extract_frames, probe_source
-from .masks import colmap_mask, motion_masks
+from .masks import MaskInfo, colmap_mask, motion_masks
 from .parallax import explain_failure, measure_parallax, require_camera_motion
 from .report import model_statistics, summary_lines, write_report
 from .sfm import (CAMERA_MODELS, PATH_JUMP_FACTOR, SfmOptions, better_model, continuous_stretch, extract_features,
@@ -47,6 +49,9 @@ GLOBAL_FALLBACK_FRACTION = 0.8
 # 0.39 -> 0.19; docs/DATASETS.md), and false positives are what seed ReFlow's dynamic points on
 # the background (docs/REAL_CAPTURES.md, motocross-jump); no ReFlow run has measured them yet.
 MASK_MODES = ("auto", "posed", "none")
+# the mapper name of a camera that does not translate (fixed_centre.py): a static or turning
+# tripod shot, written with one centre for every frame instead of refused
+FIXED_CENTRE = "fixed centre"
 
 
 @dataclass
@@ -61,6 +66,9 @@ class PrepareOptions:
     masks: str = "auto"
     sfm: SfmOptions = field(default_factory=SfmOptions)
     progress: bool = True
+    # a camera that does not move, or only turns: write every frame at one centre (True) or
+    # stop with the error that SfM cannot place it (False, --no-fixed-centre)
+    fixed_centre: bool = True
 
     def validate(self) -> None:
         if self.fps is not None and not self.fps > 0:
@@ -188,6 +196,35 @@ def _posed_masks_stage(options: PrepareOptions, cache: StageCache, key: str, out
     return entry
 
 
+def _fixed_centre_stage(options: PrepareOptions, names: list[str], images: list[np.ndarray],
+                        masks: dict[str, np.ndarray] | None, mask_info: dict, work: Path, reason: str,
+                        sfm_mapper: dict | None):
+    """(model, verified pairs = 0, mapper info, masks, mask info) of `fixed_centre.py`: every
+    frame at one centre. Estimated masks ("auto", "posed") are replaced by `background.py`'s,
+    which the homographies make possible; a folder of masks is kept.
+
+    `reason` ("static" or "rotation only") and the failed SfM's mapper info (None when SfM was
+    skipped) go into the mapper info, whose "used" is "fixed centre"."""
+    from .background import background_masks
+    from .fixed_centre import fixed_centre_cameras, write_fixed_centre_model
+
+    models_dir = work / "models"
+    shutil.rmtree(models_dir, ignore_errors=True)  # an SfM model left here would be read as a competitor
+    cameras = fixed_centre_cameras(names, images, masks)
+    if masks is not None and options.masks in ("auto", "posed"):
+        start = time.perf_counter()
+        found = background_masks(images, cameras.homographies)
+        masks = dict(zip(names, found))
+        mask_info = {**MaskInfo("auto", [float(m.mean()) for m in found]).as_dict(),
+                     "stage": "background", "seconds": round(time.perf_counter() - start, 2),
+                     "pre_sfm": {"mean_coverage": mask_info["mean_coverage"]}}
+    model = write_fixed_centre_model(models_dir / BEST_MODEL, names, images, cameras, masks, seed=options.sfm.seed)
+    mapper = {"used": FIXED_CENTRE, "reason": reason, "fixed_centre": cameras.info.as_dict(),
+              "incremental": None if sfm_mapper is None else sfm_mapper.get("incremental"),
+              "global": None if sfm_mapper is None else sfm_mapper.get("global"), "off_path": []}
+    return model, 0, mapper, masks, mask_info
+
+
 def _dropped(names: list[str], registered: set[str], models_dir: Path, off_path: Sequence[str] = ()) -> list[dict]:
     """Each unregistered frame with the reason (`off_path`: registered, then dropped off the camera path)."""
     elsewhere: dict[str, int] = {}
@@ -230,7 +267,8 @@ def prepare(options: PrepareOptions) -> dict:
         cache.finish("frames", frames_key, {"names": names})
     images = _read_frames(frame_dir, names)
     parallax = measure_parallax(images)
-    require_camera_motion(parallax)
+    if not options.fixed_centre:
+        require_camera_motion(parallax)
 
     # "posed" starts from the "auto" masks (they keep movers out of SfM): the same cached stage
     pre_sfm_mode = "auto" if options.masks == "posed" else options.masks
@@ -238,16 +276,33 @@ def prepare(options: PrepareOptions) -> dict:
     masks_key = cache.key(frames_key, masks_source)
     masks, mask_info, colmap_masks = _masks_stage(options, pre_sfm_mode, cache, masks_key, names, images,
                                                    parallax.frame_motion_px, work)
-    model, verified, mapper = _sfm_stages(options, cache, masks_key, names, colmap_masks, work)
+    fixed_centre = None
+    if parallax.static:  # no mapper can place frames without parallax: skip SfM
+        fixed_centre = "static"
+        model, verified, mapper, masks, mask_info = _fixed_centre_stage(options, names, images, masks, mask_info,
+                                                                        work, "static", None)
+    else:
+        model, verified, mapper = _sfm_stages(options, cache, masks_key, names, colmap_masks, work)
     registered = [] if model is None else sorted(image.name for image in model.images.values() if image.has_pose)
     points = 0 if model is None else int(model.num_points3D())
     if len(registered) < MIN_REGISTERED or points < MIN_POINTS:  # counted on the one model described
-        raise explain_failure(parallax, len(registered), len(names), points, mapper["used"])
+        failure = explain_failure(parallax, len(registered), len(names), points, mapper["used"])
+        if not (parallax.rotation_only and options.fixed_centre):
+            raise failure
+        # a camera that only turns: SfM had no depth to triangulate, one centre fits every frame
+        fixed_centre = "rotation only"
+        model, _, mapper, masks, mask_info = _fixed_centre_stage(options, names, images, masks, mask_info, work,
+                                                                 "rotation only", mapper)
+        registered = sorted(image.name for image in model.images.values())
 
     scale = rescale(model)
     times = frame_times(names)
     write_dataset(out, model, frame_dir, registered, times, masks)
-    if options.masks == "posed":
+    if fixed_centre and masks is not None:
+        # the posed test reads depth from the cameras' parallax, which a fixed centre does not have:
+        # estimated masks are the background's, a folder's are as given
+        mask_info.setdefault("stage", "given")
+    elif options.masks == "posed":
         posed_key = cache.key(masks_key, mapper, registered, "posed_masks")
         mask_info = _posed_masks_stage(options, cache, posed_key, out, {**mask_info, "stage": "pre-sfm"},
                                        parallax.frame_motion_px, work)

@@ -31,6 +31,15 @@ def _mapper_line(mapper: dict | None) -> str:
     """Which mapper gave the model, and what each one registered (frames, error)."""
     if not mapper:
         return "incremental"
+    if mapper.get("fixed_centre") is not None:
+        fixed = mapper["fixed_centre"]
+        why = ("the camera does not move" if mapper.get("reason") == "static" else
+               "the camera only turns; structure from motion placed "
+               f"{(mapper.get('global') or mapper.get('incremental') or [0])[0]} frames")
+        focal = "fitted to the turn" if fixed.get("focal_estimated") else "COLMAP's prior, 1.2 x the larger side"
+        return (f"fixed centre ({why}): every frame at one centre, turning up to {fixed['max_rotation_deg']:.1f} "
+                f"degrees, focal length {fixed['focal_px']:.1f} px ({focal}); depth unknown, so views away from "
+                "the camera are not constrained")
     parts = [f"{mapper['used']} kept"]
     breaks = mapper.get("path_breaks", {})
     for name in ("incremental", "global"):
@@ -46,7 +55,10 @@ def _mapper_line(mapper: dict | None) -> str:
 def _masks_line(masks: dict) -> str:
     """Which masks the dataset got, and the pre-SfM ones' coverage when the posed stage replaced them."""
     line = f"{masks['source']}"
-    if masks.get("stage") == "posed":
+    if masks.get("stage") == "background":
+        line += (" (background subtraction along the fixed centre's homographies; pre-SfM masks "
+                 f"{masks['pre_sfm']['mean_coverage']:.1%})")
+    elif masks.get("stage") == "posed":
         line += " (re-estimated with the cameras"
         if masks.get("pre_sfm"):
             line += f"; pre-SfM masks {masks['pre_sfm']['mean_coverage']:.1%}"
