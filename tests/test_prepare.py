@@ -14,7 +14,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -519,3 +519,25 @@ def test_threads_are_at_least_one_or_every_core(tmp_path, threads, refused):
             options.validate()
     else:
         options.validate()
+
+
+def test_homographies_that_are_not_turns_are_told_apart():
+    """A camera moving towards a wall gives zoom homographies, which no rotation about one centre
+    explains: `turns_about_one_centre` is False (prepare then keeps its SfM error); the same
+    wall turned by a few degrees per frame passes."""
+    rng = np.random.default_rng(2)
+    wall = cv2.GaussianBlur(rng.uniform(0, 255, (240, 320, 3)).astype(np.float32), (0, 0), 2.0)
+    wall = np.clip((wall - 127) * 4 + 127, 0, 255).astype(np.uint8)
+    K = fixed_centre.intrinsics(300.0, 320, 240)
+
+    def frames(step: Callable[[int], np.ndarray]) -> list[np.ndarray]:
+        return [cv2.warpPerspective(wall, step(k), (320, 240), borderMode=cv2.BORDER_REFLECT) for k in range(6)]
+
+    zoom = frames(lambda k: np.diag([1.04 ** k, 1.04 ** k, 1.0]) @ np.array([[1, 0, -160], [0, 1, -120], [0, 0, 1.0]])
+                  + np.array([[0, 0, 160], [0, 0, 120], [0, 0, 0.0]]))
+    names = [f"{k:05d}.png" for k in range(6)]
+    info = fixed_centre.fixed_centre_cameras(names, zoom, None).info
+    assert not info.turns_about_one_centre and info.misfit > 5 * fixed_centre.MAX_ROTATION_MISFIT
+    turned = frames(lambda k: K @ _turn((0.1, 1, 0), 1.5 * k) @ np.linalg.inv(K))
+    info = fixed_centre.fixed_centre_cameras(names, turned, None).info
+    assert info.turns_about_one_centre and max(info.rotation_deg) == pytest.approx(7.5, abs=0.3)

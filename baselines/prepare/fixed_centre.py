@@ -45,6 +45,11 @@ MIN_TURN_DEG = 2.0  # a camera turning less than this over the clip leaves the f
 HOMOGRAPHY_PX = 2.0  # RANSAC threshold of the frame-to-frame homographies
 MIN_MATCHES = 12  # fewer inliers than this: no homography for the pair
 CLOUD_POINTS = 4000  # size of the initial cloud, spread evenly over the frames
+# median over pairs of rotation_misfit above which the frames are not related by turns about one
+# centre (the camera translates, e.g. over a plane, which a homography also explains): measured
+# 3e-8 (simulator, static), 2-6e-6 (simulator pan, DAVIS breakdance and drift-chicane), 1.3e-2
+# (DAVIS kite-surf, a camera that moves)
+MAX_ROTATION_MISFIT = 1e-4
 
 
 @dataclass
@@ -55,9 +60,14 @@ class FixedCentreInfo:
     focal_estimated: bool
     rotation_deg: list[float] = field(default_factory=list)
     pairs_without_homography: list[str] = field(default_factory=list)
+    misfit: float = 0.0  # median over pairs of rotation_misfit under the focal length used
+
+    @property
+    def turns_about_one_centre(self) -> bool:
+        return self.misfit <= MAX_ROTATION_MISFIT
 
     def as_dict(self) -> dict:
-        return {"focal_px": self.focal_px, "focal_estimated": self.focal_estimated,
+        return {"focal_px": self.focal_px, "focal_estimated": self.focal_estimated, "rotation_misfit": self.misfit,
                 "max_rotation_deg": max(self.rotation_deg, default=0.0),
                 "rotation_deg": [round(r, 3) for r in self.rotation_deg],
                 "pairs_without_homography": self.pairs_without_homography,
@@ -231,7 +241,9 @@ def fixed_centre_cameras(names: Sequence[str], images: Sequence[np.ndarray],
     K = intrinsics(focal, width, height)
     rotations = chained_rotations(homographies, K)
     missing = [f"{names[k]}->{names[k + 1]}" for k, h in enumerate(homographies) if h is None]
-    info = FixedCentreInfo(focal, estimated, [_angle_deg(r) for r in rotations], missing)
+    found = [h for h in homographies if h is not None]
+    misfit = float(np.median([rotation_misfit([h], K) for h in found])) if found else 0.0
+    info = FixedCentreInfo(focal, estimated, [_angle_deg(r) for r in rotations], missing, misfit)
     return FixedCentreCameras(K, rotations, homographies, info)
 
 

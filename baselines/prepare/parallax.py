@@ -103,13 +103,18 @@ def measure_parallax(images: Sequence[np.ndarray]) -> ParallaxCheck:
     return check
 
 
+def static_camera_error(check: ParallaxCheck) -> PrepareError:
+    """The refusal of a camera that does not move (no SfM can place the frames)."""
+    return PrepareError(
+        f"the camera does not move (median flow {max(check.median_flow_px, default=0.0):.2f} px between the "
+        "first and last frames): structure from motion needs parallax",
+        "film while walking around the scene (a static tripod shot cannot be reconstructed in 3D)")
+
+
 def require_camera_motion(check: ParallaxCheck) -> None:
-    """`PrepareError` when the camera does not move (no SfM can place the frames)."""
+    """`static_camera_error` when the camera does not move."""
     if check.static:
-        raise PrepareError(
-            f"the camera does not move (median flow {max(check.median_flow_px):.2f} px between the first and "
-            "last frames): structure from motion needs parallax",
-            "film while walking around the scene (a static tripod shot cannot be reconstructed)")
+        raise static_camera_error(check)
 
 
 def explain_failure(check: ParallaxCheck, registered: int, total: int, points: int,

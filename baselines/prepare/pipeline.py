@@ -26,7 +26,7 @@ from .dataset import MEDIAN_DEPTH, frame_times, rescale, write_dataset
 from .errors import PrepareError
 from .frames import extract_frames, probe_source
 from .masks import MaskInfo, colmap_mask, motion_masks
-from .parallax import explain_failure, measure_parallax, require_camera_motion
+from .parallax import explain_failure, measure_parallax, require_camera_motion, static_camera_error
 from .report import model_statistics, summary_lines, write_report
 from .sfm import (CAMERA_MODELS, PATH_JUMP_FACTOR, SfmOptions, better_model, continuous_stretch, extract_features,
                   global_map_frames, map_frames, match_frames, model_quality, read_model)
@@ -198,19 +198,23 @@ def _posed_masks_stage(options: PrepareOptions, cache: StageCache, key: str, out
 
 def _fixed_centre_stage(options: PrepareOptions, names: list[str], images: list[np.ndarray],
                         masks: dict[str, np.ndarray] | None, mask_info: dict, work: Path, reason: str,
-                        sfm_mapper: dict | None):
+                        sfm_mapper: dict | None, refusal: PrepareError):
     """(model, verified pairs = 0, mapper info, masks, mask info) of `fixed_centre.py`: every
     frame at one centre. Estimated masks ("auto", "posed") are replaced by `background.py`'s,
     which the homographies make possible; a folder of masks is kept.
 
     `reason` ("static" or "rotation only") and the failed SfM's mapper info (None when SfM was
-    skipped) go into the mapper info, whose "used" is "fixed centre"."""
+    skipped) go into the mapper info, whose "used" is "fixed centre". `refusal` is raised, with
+    the reason, when the frame-to-frame homographies are not turns about one centre."""
     from .background import background_masks
     from .fixed_centre import fixed_centre_cameras, write_fixed_centre_model
 
     models_dir = work / "models"
     shutil.rmtree(models_dir, ignore_errors=True)  # an SfM model left here would be read as a competitor
     cameras = fixed_centre_cameras(names, images, masks)
+    if not cameras.info.turns_about_one_centre:
+        raise PrepareError(f"{refusal.message}; the frames are not turns about one centre either (median "
+                           f"homography misfit {cameras.info.misfit:.1e})", refusal.hint)
     if masks is not None and options.masks in ("auto", "posed"):
         start = time.perf_counter()
         found = background_masks(images, cameras.homographies)
@@ -280,7 +284,8 @@ def prepare(options: PrepareOptions) -> dict:
     if parallax.static:  # no mapper can place frames without parallax: skip SfM
         fixed_centre = "static"
         model, verified, mapper, masks, mask_info = _fixed_centre_stage(options, names, images, masks, mask_info,
-                                                                        work, "static", None)
+                                                                        work, "static", None,
+                                                                        static_camera_error(parallax))
     else:
         model, verified, mapper = _sfm_stages(options, cache, masks_key, names, colmap_masks, work)
     registered = [] if model is None else sorted(image.name for image in model.images.values() if image.has_pose)
@@ -292,7 +297,7 @@ def prepare(options: PrepareOptions) -> dict:
         # a camera that only turns: SfM had no depth to triangulate, one centre fits every frame
         fixed_centre = "rotation only"
         model, _, mapper, masks, mask_info = _fixed_centre_stage(options, names, images, masks, mask_info, work,
-                                                                 "rotation only", mapper)
+                                                                 "rotation only", mapper, failure)
         registered = sorted(image.name for image in model.images.values())
 
     scale = rescale(model)
