@@ -2,6 +2,7 @@
 
     nice -n 5 python benchmarks/mask_quality.py --data /work/realdata [--clips dog,libby] [--json OUT.json]
     nice -n 5 python benchmarks/mask_quality.py --data /work/realdata --posed     # the post-mapping masks
+    nice -n 5 python benchmarks/mask_quality.py --data /work/realdata --background   # --masks background
 
 For each clip folder `<data>/davis_<clip>/` (written by `benchmarks/prepare_davis.py`: `images/`
 the extracted frames, `gt/motion_masks/` the DAVIS annotations at the frames' size), runs only the
@@ -15,8 +16,10 @@ tuned on. Clips without camera motion (breakdance, drift-chicane) have no frames
 
 `--posed` scores the post-mapping stage instead (`baselines.prepare.remask.posed_masks`): the
 cameras and sparse points are read from each clip's `sparse/0/`, the frames from `images/` (the
-registered frames, which the annotations are matched to by name). Nothing is written into the
-clip folders.
+registered frames, which the annotations are matched to by name). `--background` scores
+`--masks background`: the pre-SfM masks of the clip's frames, then background subtraction along
+the homographies of neighbouring frames (`baselines.prepare.background.moving_camera_masks`).
+Nothing is written into the clip folders.
 """
 from __future__ import annotations
 
@@ -32,6 +35,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from baselines.prepare.background import moving_camera_masks  # noqa: E402
 from baselines.prepare.masks import motion_masks  # noqa: E402
 from baselines.prepare.parallax import measure_parallax  # noqa: E402
 from baselines.prepare.remask import posed_masks, read_posed_dataset  # noqa: E402
@@ -54,12 +58,16 @@ def read_clip(folder: Path) -> tuple[list[np.ndarray], list[np.ndarray]]:
     return images, truth
 
 
-def evaluate(folder: Path, posed: bool = False) -> dict:
-    """Scores and seconds of the auto masks of one clip folder (`posed`: the post-mapping masks)."""
+def evaluate(folder: Path, posed: bool = False, background: bool = False) -> dict:
+    """Scores and seconds of the auto masks of one clip folder (`posed`: the post-mapping masks;
+    `background`: `--masks background`'s, from the pre-SfM masks of the same frames)."""
     images, truth = read_clip(folder)
     start = time.perf_counter()
     motion = measure_parallax(images).frame_motion_px
-    if posed:
+    if background:
+        pre_sfm, _ = motion_masks(images, "auto", motion, progress=False)
+        masks = moving_camera_masks(images, pre_sfm)
+    elif posed:
         names, frames, Ks, viewmats, views = read_posed_dataset(folder)
         index = {path.name: k for k, path in enumerate(sorted((folder / "images").glob("*.png")))}
         truth = [truth[index[name]] for name in names]
@@ -100,6 +108,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, help="also write the raw figures here")
     parser.add_argument("--posed", action="store_true",
                         help="score the post-mapping masks (cameras and points from each clip's sparse/0)")
+    parser.add_argument("--background", action="store_true",
+                        help="score --masks background (pre-SfM masks, then background subtraction along the "
+                             "homographies of neighbouring frames)")
     args = parser.parse_args(argv)
     names = ([n.strip().removeprefix("davis_").replace("-", "_") for n in args.clips.split(",") if n.strip()]
              if args.clips else list(TUNING + HELD_OUT))
@@ -117,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     results = {}
     for name, folder in folders.items():
-        results[name] = evaluate(folder, args.posed)
+        results[name] = evaluate(folder, args.posed, args.background)
         r = results[name]
         print(f"{name}: IoU {r['IoU']:.3f} precision {r['precision']:.3f} recall {r['recall']:.3f} "
               f"({r['seconds']:.1f} s)", file=sys.stderr, flush=True)

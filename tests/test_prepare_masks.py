@@ -121,3 +121,13 @@ def test_background_subtraction_finds_a_mover_in_front_of_a_turning_camera():
     assert iou(background_masks(images, [shift] * (frames - 1))) > 0.8
     # without the homographies the background is a blur of the moving wall: the disk is lost in it
     assert iou(background_masks(images, [None] * (frames - 1))) < 0.3
+
+
+def test_background_frames_spread_over_a_fixed_centre_clip_or_stay_near_a_moving_camera():
+    from baselines.prepare.background import background_frames
+
+    spread = background_frames(40, 80, None, count=20)
+    assert len(spread) == 20 and 40 not in spread and min(spread) == 0 and max(spread) == 79
+    near = background_frames(3, 80, 10, count=20)
+    assert near == sorted(near, key=lambda j: abs(j - 3)) and set(near) == set(range(0, 14)) - {3}
+    assert background_frames(0, 3, 10) == [1, 2]

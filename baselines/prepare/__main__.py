@@ -41,8 +41,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--size", type=int, default=640, help="frame width in pixels (never upscaled; default 640)")
     parser.add_argument("--masks", default="auto",
                         help="auto (estimate motion masks from the frames), posed (auto, then re-estimated after "
-                             "SfM with the registered cameras: more recall, less precision on DAVIS), none, "
-                             "or a folder of masks (non-zero = moving)")
+                             "SfM with the registered cameras: more recall, less precision on DAVIS), background "
+                             "(auto for SfM, then background subtraction along the homographies of neighbouring "
+                             "frames), none, or a folder of masks (non-zero = moving)")
     parser.add_argument("--camera-model", default="SIMPLE_PINHOLE", choices=CAMERA_MODELS,
                         help="COLMAP camera model shared by all frames (distortion is ignored by the readers)")
     parser.add_argument("--overlap", type=int, default=10, help="sequential matching: frames matched ahead (at least 1; default 10)")

@@ -27,8 +27,10 @@ import cv2
 import numpy as np
 
 from ..data.motion_masks import MotionMaskOptions, clean_mask
+from .fixed_centre import pair_homography
 
 BACKGROUND_FRAMES = 21  # frames whose median is each frame's background, spread over the clip
+BACKGROUND_WINDOW = 10  # a moving camera: the frames within this many of frame k (set before measuring)
 MIN_DIFFERENCE = 30.0  # RGB distance (8-bit units) below which a pixel is never moving
 NOISE_FACTOR = 4.0  # x the frame's median distance to its background (sensor noise, small misfits)
 CLEANING = MotionMaskOptions(open_px=1, close_px=3, min_area=0.001)
@@ -42,12 +44,21 @@ def chained_homographies(homographies: Sequence[np.ndarray | None]) -> list[np.n
     return chained
 
 
+def background_frames(k: int, total: int, window: int | None, count: int = BACKGROUND_FRAMES) -> list[int]:
+    """The frames whose median is frame k's background: up to `count` others spread over the clip
+    (`window` None: a fixed centre, where every frame sees the scene the same way), or the frames
+    within `window` of k (a moving camera: a homography aligns only nearby frames' backgrounds)."""
+    if window is None:
+        return sorted(set(np.linspace(0, total - 1, count + 1).round().astype(int)) - {k})[:count]
+    near = [j for j in range(max(0, k - window), min(total, k + window + 1)) if j != k]
+    return sorted(near, key=lambda j: abs(j - k))[:count]
+
+
 def background(images: Sequence[np.ndarray], from_first: Sequence[np.ndarray], k: int,
-               count: int = BACKGROUND_FRAMES) -> np.ndarray:
-    """[H, W, 3] float32 background of frame k: the per-pixel median of up to `count` other frames
+               others: Sequence[int]) -> np.ndarray:
+    """[H, W, 3] float32 background of frame k: the per-pixel median of the frames `others`
     warped into its view (NaN where none of them sees the pixel)."""
     height, width = images[k].shape[:2]
-    others = sorted(set(np.linspace(0, len(images) - 1, count + 1).round().astype(int)) - {k})[:count]
     stack = []
     for j in others:
         into_k = from_first[k] @ np.linalg.inv(from_first[j])
@@ -59,13 +70,16 @@ def background(images: Sequence[np.ndarray], from_first: Sequence[np.ndarray], k
         return np.nanmedian(np.stack(stack), axis=0)
 
 
-def background_masks(images: Sequence[np.ndarray], homographies: Sequence[np.ndarray | None]) -> list[np.ndarray]:
+def background_masks(images: Sequence[np.ndarray], homographies: Sequence[np.ndarray | None],
+                     window: int | None = None) -> list[np.ndarray]:
     """[H, W] bool per frame (True = moving) of `images` (uint8, one size, at least 2) whose
-    consecutive frames are related by `homographies` (frame k to k + 1; None = identity)."""
+    consecutive frames are related by `homographies` (frame k to k + 1; None = identity);
+    `window` as in `background_frames`."""
     from_first = chained_homographies(homographies)
     masks = []
     for k, image in enumerate(images):
-        distance = np.linalg.norm(image.astype(np.float32) - background(images, from_first, k), axis=2)
+        others = background_frames(k, len(images), window)
+        distance = np.linalg.norm(image.astype(np.float32) - background(images, from_first, k, others), axis=2)
         seen = np.isfinite(distance)
         if not seen.any():
             masks.append(np.zeros(distance.shape, bool))
@@ -73,3 +87,14 @@ def background_masks(images: Sequence[np.ndarray], homographies: Sequence[np.nda
         threshold = max(MIN_DIFFERENCE, NOISE_FACTOR * float(np.median(distance[seen])))
         masks.append(clean_mask(seen & (np.nan_to_num(distance) > threshold), CLEANING))
     return masks
+
+
+def moving_camera_masks(frames: Sequence[np.ndarray], pre_sfm: Sequence[np.ndarray | None],
+                        window: int = BACKGROUND_WINDOW) -> list[np.ndarray]:
+    """`background_masks` of consecutive frames of a moving camera (uint8 BGR, one size): the
+    homography of each neighbouring pair is fitted off its pre-SfM masks (True = moving), and each
+    frame's background comes from the frames within `window` of it, where a homography still
+    aligns the background (a far scene, or a camera that mostly turns)."""
+    homographies = [pair_homography(frames[k], frames[k + 1], pre_sfm[k], pre_sfm[k + 1])
+                    for k in range(len(frames) - 1)]
+    return background_masks(frames, homographies, window=window)

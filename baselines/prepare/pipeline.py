@@ -48,7 +48,7 @@ GLOBAL_FALLBACK_FRACTION = 0.8
 # masks' IoU is 0.33 against 0.31 and their precision lower (goat 0.76 -> 0.22, motocross-jump
 # 0.39 -> 0.19; docs/DATASETS.md), and false positives are what seed ReFlow's dynamic points on
 # the background (docs/REAL_CAPTURES.md, motocross-jump); no ReFlow run has measured them yet.
-MASK_MODES = ("auto", "posed", "none")
+MASK_MODES = ("auto", "posed", "background", "none")
 # the mapper name of a camera that does not translate (fixed_centre.py): a static or turning
 # tripod shot, written with one centre for every frame instead of refused
 FIXED_CENTRE = "fixed centre"
@@ -215,7 +215,7 @@ def _fixed_centre_stage(options: PrepareOptions, names: list[str], images: list[
     if not cameras.info.turns_about_one_centre:
         raise PrepareError(f"{refusal.message}; the frames are not turns about one centre either (median "
                            f"homography misfit {cameras.info.misfit:.1e})", refusal.hint)
-    if masks is not None and options.masks in ("auto", "posed"):
+    if masks is not None and options.masks in ("auto", "posed", "background"):
         start = time.perf_counter()
         found = background_masks(images, cameras.homographies)
         masks = dict(zip(names, found))
@@ -227,6 +227,23 @@ def _fixed_centre_stage(options: PrepareOptions, names: list[str], images: list[
               "incremental": None if sfm_mapper is None else sfm_mapper.get("incremental"),
               "global": None if sfm_mapper is None else sfm_mapper.get("global"), "off_path": []}
     return model, 0, mapper, masks, mask_info
+
+
+def _background_masks_stage(out: Path, registered: list[str], images: dict[str, np.ndarray],
+                            pre_sfm: dict[str, np.ndarray], pre_sfm_info: dict) -> dict:
+    """`--masks background` on a moving camera: the written dataset's masks by background
+    subtraction (`background.py`) along the homographies of consecutive registered frames (fitted
+    off the pre-SfM masks), each frame's background from the frames within BACKGROUND_WINDOW;
+    writes `out/motion_masks/` and returns the report's "masks" entry."""
+    from .background import BACKGROUND_WINDOW, moving_camera_masks
+    from .remask import write_masks
+
+    start = time.perf_counter()
+    found = moving_camera_masks([images[name] for name in registered], [pre_sfm[name] for name in registered])
+    write_masks(out, registered, found)
+    return {**MaskInfo("auto", [float(m.mean()) for m in found]).as_dict(), "stage": "background",
+            "window": BACKGROUND_WINDOW, "seconds": round(time.perf_counter() - start, 2),
+            "pre_sfm": {"mean_coverage": pre_sfm_info["mean_coverage"]}}
 
 
 def _dropped(names: list[str], registered: set[str], models_dir: Path, off_path: Sequence[str] = ()) -> list[dict]:
@@ -274,8 +291,8 @@ def prepare(options: PrepareOptions) -> dict:
     if not options.fixed_centre:
         require_camera_motion(parallax)
 
-    # "posed" starts from the "auto" masks (they keep movers out of SfM): the same cached stage
-    pre_sfm_mode = "auto" if options.masks == "posed" else options.masks
+    # "posed" and "background" start from the "auto" masks (they keep movers out of SfM): the same cached stage
+    pre_sfm_mode = "auto" if options.masks in ("posed", "background") else options.masks
     masks_source = pre_sfm_mode if pre_sfm_mode in MASK_MODES else file_identity(Path(pre_sfm_mode))
     masks_key = cache.key(frames_key, masks_source)
     masks, mask_info, colmap_masks = _masks_stage(options, pre_sfm_mode, cache, masks_key, names, images,
@@ -307,6 +324,8 @@ def prepare(options: PrepareOptions) -> dict:
         # the posed test reads depth from the cameras' parallax, which a fixed centre does not have:
         # estimated masks are the background's, a folder's are as given
         mask_info.setdefault("stage", "given")
+    elif options.masks == "background":
+        mask_info = _background_masks_stage(out, registered, dict(zip(names, images)), masks, mask_info)
     elif options.masks == "posed":
         posed_key = cache.key(masks_key, mapper, registered, "posed_masks")
         mask_info = _posed_masks_stage(options, cache, posed_key, out, {**mask_info, "stage": "pre-sfm"},

@@ -56,8 +56,8 @@ def _masks_line(masks: dict) -> str:
     """Which masks the dataset got, and the pre-SfM ones' coverage when the posed stage replaced them."""
     line = f"{masks['source']}"
     if masks.get("stage") == "background":
-        line += (" (background subtraction along the fixed centre's homographies; pre-SfM masks "
-                 f"{masks['pre_sfm']['mean_coverage']:.1%})")
+        along = "neighbouring frames' homographies" if masks.get("window") else "the fixed centre's homographies"
+        line += f" (background subtraction along {along}; pre-SfM masks {masks['pre_sfm']['mean_coverage']:.1%})"
     elif masks.get("stage") == "posed":
         line += " (re-estimated with the cameras"
         if masks.get("pre_sfm"):
