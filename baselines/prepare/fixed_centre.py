@@ -13,13 +13,15 @@ from one centre, and the scene is fixed up to its unknown depth. This module wri
   H = K R K^-1, so R is the rotation nearest K^-1 H K), fitted with RANSAC on SIFT matches off
   the motion masks; a pair without a homography keeps the rotation of the frame before;
 - intrinsics: principal point at the image centre; the focal length under which the
-  homographies are closest to rotations (a turning camera fixes it: 137.9 px found for the
+  homographies are closest to rotations (a turning camera fixes it: 139.3 px found for the
   simulator's 138.6 px pan) or, for a camera that turns less than MIN_TURN_DEG, COLMAP's prior
   for an unknown camera, 1.2 x the larger side;
 - an initial cloud on the sphere of radius MEDIAN_DEPTH about the centre: pixels of every frame
   (off the motion masks) pushed out along their rays, coloured by the frame.
 
-The homographies also give such a clip better motion masks than the pre-SfM estimator
+`FixedCentreInfo.turns_about_one_centre` says whether the homographies are turns at all (a camera
+moving over a plane or zooming in on a wall gives homographies too); `prepare` uses the model
+only then. The homographies also give such a clip better motion masks than the pre-SfM estimator
 (`background.py`), which `prepare` uses in their place.
 
 Depth is a guess (one sphere), so views away from the centre are not constrained; the report and
