@@ -104,18 +104,24 @@ def table(rows: list[dict]) -> str:
             continue
         mapper = r["mapper"] or {}
         used = mapper.get("used", "incremental")
-        if mapper.get("global") is not None:  # both ran: say what the other registered
+        reprojection = f"{r['reprojection_px']:.2f}"
+        if mapper.get("fixed_centre") is not None:  # one centre, rotations from homographies: no reprojection
+            used += f" ({mapper['reason']})"
+            reprojection = "-"
+        elif mapper.get("global") is not None:  # both ran: say what the other registered
             other = "global" if used == "incremental" else "incremental"
             used += f" ({other}: {mapper[other][0]})"
-        lines.append(f"| {r['clip']} | {r['registered']}/{r['extracted']} | {r['reprojection_px']:.2f} | "
+        lines.append(f"| {r['clip']} | {r['registered']}/{r['extracted']} | {reprojection} | "
                      f"{r['points']} | {used} | {r['seconds']:.0f} | " + " | ".join(scores) + " |")
     done = [r for r in rows if r.get("registered") is not None]
     good = sum(r["registered"] >= 0.8 * r["extracted"] for r in done)
+    fixed = sum(r["registered"] >= 0.8 * r["extracted"] and (r["mapper"] or {}).get("fixed_centre") is not None
+                for r in done)
+    placed = f"{good} of {len(rows)} clips with >= 80% of frames registered" + (
+        f" ({fixed} of them with a fixed centre, not SfM)" if fixed else "")
     ious = [r["masks"]["IoU"] for r in rows if r["masks"]]
     lines.append("")
-    lines.append(f"{good} of {len(rows)} clips with >= 80% of frames registered; "
-                 f"auto-mask IoU mean {np.mean(ious):.2f} over {len(ious)} clips" if ious else
-                 f"{good} of {len(rows)} clips with >= 80% of frames registered")
+    lines.append(f"{placed}; auto-mask IoU mean {np.mean(ious):.2f} over {len(ious)} clips" if ious else placed)
     return "\n".join(lines)
 
 
