@@ -219,9 +219,7 @@ def _fixed_centre_stage(options: PrepareOptions, names: list[str], images: list[
         start = time.perf_counter()
         found = background_masks(images, cameras.homographies)
         masks = dict(zip(names, found))
-        mask_info = {**MaskInfo("auto", [float(m.mean()) for m in found]).as_dict(),
-                     "stage": "background", "seconds": round(time.perf_counter() - start, 2),
-                     "pre_sfm": {"mean_coverage": mask_info["mean_coverage"]}}
+        mask_info = _background_entry(found, mask_info, time.perf_counter() - start)
     model = write_fixed_centre_model(models_dir / BEST_MODEL, names, images, cameras, masks, seed=options.sfm.seed)
     mapper = {"used": FIXED_CENTRE, "reason": reason, "fixed_centre": cameras.info.as_dict(),
               "incremental": None if sfm_mapper is None else sfm_mapper.get("incremental"),
@@ -241,9 +239,14 @@ def _background_masks_stage(out: Path, registered: list[str], images: dict[str, 
     start = time.perf_counter()
     found = moving_camera_masks([images[name] for name in registered], [pre_sfm[name] for name in registered])
     write_masks(out, registered, found)
+    return {**_background_entry(found, pre_sfm_info, time.perf_counter() - start), "window": BACKGROUND_WINDOW}
+
+
+def _background_entry(found: Sequence[np.ndarray], pre_sfm_info: dict, seconds: float) -> dict:
+    """The report's "masks" entry of background-subtraction masks (`found`, True = moving), keeping
+    the pre-SfM masks' coverage."""
     return {**MaskInfo("auto", [float(m.mean()) for m in found]).as_dict(), "stage": "background",
-            "window": BACKGROUND_WINDOW, "seconds": round(time.perf_counter() - start, 2),
-            "pre_sfm": {"mean_coverage": pre_sfm_info["mean_coverage"]}}
+            "seconds": round(seconds, 2), "pre_sfm": {"mean_coverage": pre_sfm_info["mean_coverage"]}}
 
 
 def _dropped(names: list[str], registered: set[str], models_dir: Path, off_path: Sequence[str] = ()) -> list[dict]:
@@ -297,9 +300,9 @@ def prepare(options: PrepareOptions) -> dict:
     masks_key = cache.key(frames_key, masks_source)
     masks, mask_info, colmap_masks = _masks_stage(options, pre_sfm_mode, cache, masks_key, names, images,
                                                    parallax.frame_motion_px, work)
-    fixed_centre = None
+    fixed_reason = None  # why every frame got one centre, when it did
     if parallax.static:  # no mapper can place frames without parallax: skip SfM
-        fixed_centre = "static"
+        fixed_reason = "static"
         model, verified, mapper, masks, mask_info = _fixed_centre_stage(options, names, images, masks, mask_info,
                                                                         work, "static", None,
                                                                         static_camera_error(parallax))
@@ -312,7 +315,7 @@ def prepare(options: PrepareOptions) -> dict:
         if not (parallax.rotation_only and options.fixed_centre):
             raise failure
         # a camera that only turns: SfM had no depth to triangulate, one centre fits every frame
-        fixed_centre = "rotation only"
+        fixed_reason = "rotation only"
         model, _, mapper, masks, mask_info = _fixed_centre_stage(options, names, images, masks, mask_info, work,
                                                                  "rotation only", mapper, failure)
         registered = sorted(image.name for image in model.images.values())
@@ -320,7 +323,7 @@ def prepare(options: PrepareOptions) -> dict:
     scale = rescale(model)
     times = frame_times(names)
     write_dataset(out, model, frame_dir, registered, times, masks)
-    if fixed_centre and masks is not None:
+    if fixed_reason and masks is not None:
         # the posed test reads depth from the cameras' parallax, which a fixed centre does not have:
         # estimated masks are the background's, a folder's are as given
         mask_info.setdefault("stage", "given")
