@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import shutil
 
+import cv2
 import numpy as np
 import pytest
 
@@ -81,6 +82,19 @@ def test_nvidia_corrupt_image(copy_of):
     root = copy_of("nvidia")
     corrupt(root / "images" / "002.png")
     expect_error(root, "002.png")
+
+
+def test_nvidia_truncated_jpeg_frame(copy_of):
+    """OpenCV decodes a JPEG cut short without an error, its missing rows flat grey."""
+    root = copy_of("nvidia")
+    png = root / "images" / "002.png"
+    jpeg = png.with_suffix(".jpg")
+    cv2.imwrite(str(jpeg), cv2.imread(str(png)), [cv2.IMWRITE_JPEG_QUALITY, 100])
+    png.unlink()
+    assert len(load_scene(root).train_cameras) == 4  # the whole JPEG loads
+    data = jpeg.read_bytes()
+    jpeg.write_bytes(data[:len(data) * 2 // 3])
+    expect_error(root, "002.jpg", "truncated")
 
 
 def test_nvidia_inconsistent_image_sizes(copy_of):

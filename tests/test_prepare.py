@@ -312,6 +312,19 @@ def test_empty_folder(tmp_path):
     assert_one_line_error(quiet(tmp_path / "empty", tmp_path / "out"), "holds no images")
 
 
+def test_truncated_jpeg_frame(tmp_path):
+    """A JPEG cut short decodes in OpenCV with grey rows: refused before any frame is extracted."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    texture = np.random.default_rng(0).integers(0, 256, (60, 80, 3), np.uint8)
+    for k in range(3):
+        cv2.imwrite(str(folder / f"{k}.jpg"), np.roll(texture, 2 * k, axis=1))
+    data = (folder / "1.jpg").read_bytes()
+    (folder / "1.jpg").write_bytes(data[:len(data) // 2])
+    assert_one_line_error(quiet(folder, tmp_path / "out"), "1.jpg is truncated")
+    assert not (tmp_path / "out").exists()
+
+
 def test_mixed_image_sizes(clip, tmp_path):
     folder = tmp_path / "mixed"
     folder.mkdir()

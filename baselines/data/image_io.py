@@ -23,8 +23,34 @@ def list_files(folder: Path, extensions: Sequence[str]) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in extensions)
 
 
+def truncated_jpeg(path: Path) -> bool:
+    """True if `path` is a JPEG whose data ends before its end marker (a copy or write cut short).
+
+    OpenCV decodes such a file without an error (libjpeg only prints "Premature end of JPEG
+    file") and fills the missing rows with flat grey, which would train as real pixels. Pillow
+    (installed with scikit-image and matplotlib) raises instead; it decodes at 1/8 scale here,
+    which still reads every byte of the compressed data. Other formats, and files Pillow cannot
+    open, give False: OpenCV's own decode judges them.
+    """
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:
+            if image.format != "JPEG":
+                return False
+            image.draft(image.mode, (max(1, image.width // 8), max(1, image.height // 8)))
+            image.load()
+    except OSError as err:
+        return "truncated" in str(err)
+    except Exception:  # noqa: BLE001 - Pillow's decoders raise assorted errors; OpenCV has the last word
+        return False
+    return False
+
+
 def read_rgba(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     """(rgb [H,W,3] float32 in [0,1], alpha [H,W] float32 or None) from an 8/16-bit or float image."""
+    if truncated_jpeg(path):  # before OpenCV, which would print libjpeg's warning and decode grey rows
+        raise DatasetError(f"image {path} is truncated (its JPEG data ends early; re-copy or re-export it)")
     data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if data is None:
         raise DatasetError(f"cannot read image {path} (missing, corrupt or unsupported format)")
@@ -56,6 +82,8 @@ def composite(rgb: np.ndarray, alpha: np.ndarray | None, background: Sequence[fl
 
 def read_mask(path: Path) -> np.ndarray:
     """[H,W] float32 binary mask, 1 where the stored value is above half range (255 = dynamic)."""
+    if truncated_jpeg(path):  # before OpenCV, which would print libjpeg's warning and decode grey rows
+        raise DatasetError(f"mask {path} is truncated (its JPEG data ends early; re-copy or re-export it)")
     data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if data is None:
         raise DatasetError(f"cannot read mask {path} (missing, corrupt or unsupported format)")

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from ..data.image_io import IMAGE_EXTENSIONS
+from ..data.image_io import IMAGE_EXTENSIONS, truncated_jpeg
 from .errors import PrepareError
 
 
@@ -44,6 +44,8 @@ def _probe_folder(folder: Path) -> SourceInfo:
                            "point at a video file or a folder of JPG/PNG frames")
     sizes: dict[tuple[int, int], Path] = {}
     for path in files:  # header-only reads would need another library; frames are small enough
+        if truncated_jpeg(path):  # OpenCV would decode its missing rows as flat grey
+            raise PrepareError(f"image {path} is truncated (its JPEG data ends early)", "re-copy or re-export that file")
         image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise PrepareError(f"cannot read image {path} (corrupt or unsupported format)",

@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from ..data.image_io import IMAGE_EXTENSIONS
+from ..data.image_io import IMAGE_EXTENSIONS, truncated_jpeg
 from ..data.motion_masks import MotionMaskOptions, clean_mask, masks_from_pair_errors
 from ..data.resolution import require_scaled_copy
 from ..data.optical_flow import pixel_grid
@@ -185,6 +185,8 @@ def read_mask_folder(folder: Path, count: int, size: tuple[int, int]) -> list[np
                            "give one mask per kept frame (same order), or use --masks auto")
     masks = []
     for path in files:
+        if truncated_jpeg(path):  # OpenCV would decode its missing rows as flat grey (a half-moving frame)
+            raise PrepareError(f"mask {path} is truncated (its JPEG data ends early)", "re-copy or re-export that file")
         mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if mask is None:
             raise PrepareError(f"cannot read mask {path}")
