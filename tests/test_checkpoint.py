@@ -8,6 +8,7 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from baselines.fourdgs.checkpoint import (
+    FolderContentError,
     atomic_save,
     find_latest_iteration,
     gaussians_to_ply,
@@ -136,6 +137,19 @@ def test_load_errors_name_the_file(tmp_path):
         load_point_cloud_dir(folder, GaussianModel(2, hidden))
     with pytest.raises(ValueError, match="checkpoint folder not found"):
         load_point_cloud_dir(tmp_path / "missing", GaussianModel(2, hidden))
+
+
+def test_non_finite_values_in_a_ply_are_a_damaged_file_not_a_config_mismatch(tmp_path):
+    """NaN in a 4DGS folder's PLY (no manifest to catch it) is a `FolderContentError`: the callers
+    (`--start_checkpoint`, render.py) then add no "pass --configs" hint, which no config answers."""
+    hidden = hidden_args()
+    folder = tmp_path / "it"
+    _write_4dgs_folder(folder, 5, 2, hidden)
+    ply = PlyData.read(str(folder / "point_cloud.ply"), mmap=False)
+    ply["vertex"].data["scale_1"][3] = np.nan
+    ply.write(str(folder / "point_cloud.ply"))
+    with pytest.raises(FolderContentError, match=r"point_cloud\.ply: scaling values contain NaN or inf"):
+        load_point_cloud_dir(folder, GaussianModel(2, hidden))
 
 
 def test_mismatched_table_is_rejected_before_the_model_changes(tmp_path):

@@ -237,7 +237,7 @@ def read_gaussian_ply(path: str | os.PathLike, sh_degree: int) -> dict[str, Tens
     """Per-Gaussian float32 tensors (keys xyz, f_dc, f_rest, opacity, scaling, rotation) of a PLY.
 
     Raises ``ValueError`` naming the file if it is unreadable, lacks properties, holds another
-    SH degree than ``sh_degree`` or contains NaN/inf.
+    SH degree than ``sh_degree`` or contains NaN/inf (unreadable or NaN/inf: `FolderContentError`).
     """
     path = Path(path)
     if not path.is_file():
@@ -284,8 +284,8 @@ def read_gaussian_ply(path: str | os.PathLike, sh_degree: int) -> dict[str, Tens
         "rotation": columns("rot", 4),
     }
     for name, array in arrays.items():
-        if not np.isfinite(array).all():
-            raise ValueError(f"{path}: {name} values contain NaN or inf")
+        if not np.isfinite(array).all():  # a damaged file: no --configs fixes it
+            raise FolderContentError(f"{path}: {name} values contain NaN or inf")
     return {name: torch.from_numpy(np.ascontiguousarray(array)) for name, array in arrays.items()}
 
 
