@@ -250,6 +250,18 @@ def test_colmap_missing_image_and_folder(copy_of):
     expect_error(root, "images")
 
 
+def test_colmap_two_masks_for_one_image(copy_of):
+    """000.png and 000.jpg: the folder listing's order would pick one; a notes file is no mask."""
+    root = copy_of("colmap")
+    (root / "motion_masks").mkdir()
+    for k in range(4):
+        cv2.imwrite(str(root / "motion_masks" / f"{k:03d}.png"), np.zeros((32, 32), np.uint8))
+    (root / "motion_masks" / "001.txt").write_text("made with tool X")
+    assert load_scene(root).train_cameras[1].mask is not None
+    cv2.imwrite(str(root / "motion_masks" / "001.jpg"), np.full((32, 32), 255, np.uint8))
+    expect_error(root, "motion_masks", "2 masks for image '001.png'", "001.jpg", "001.png")
+
+
 def test_colmap_corrupt_model(copy_of):
     root = copy_of("colmap")
     (root / "sparse" / "0" / "images.bin").write_bytes(b"\x01\x02")

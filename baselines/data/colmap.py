@@ -27,6 +27,7 @@ from .colmap_compat import (DISTORTED_PINHOLE_MODELS, PINHOLE_MODELS, camera_mod
                             read_reconstruction)
 from .errors import DatasetError
 from .geometry import orthonormal_rotation
+from .image_io import IMAGE_EXTENSIONS, list_files
 from .pointcloud import PointCloud
 from .scene_info import SceneInfo, assemble_scene, llff_holdout
 from .validation import require_finite
@@ -112,17 +113,24 @@ def warn_odd_times(path: Path, names: list[str], times: list[float]) -> None:
 
 
 def find_masks(source: Path, names: list[str], folder_name: str = MASK_FOLDER) -> list[Path] | None:
-    """`<folder_name>/<stem>.<ext>` per image (None without the folder); `DatasetError` for a missing one."""
+    """`<folder_name>/<stem>.<ext>` per image (None without the folder; only image extensions
+    count); `DatasetError` for a missing one, or for two (e.g. `000.png` and `000.jpg`: which one
+    the folder listing gave first would decide)."""
     folder = source / folder_name
     if not folder.is_dir():
         return None
-    by_stem = {p.stem: p for p in folder.iterdir() if p.is_file()}
+    by_stem: dict[str, list[Path]] = {}
+    for path in list_files(folder, IMAGE_EXTENSIONS):
+        by_stem.setdefault(path.stem, []).append(path)
     paths = []
     for name in names:
         stem = Path(name).with_suffix("").name
         if stem not in by_stem:
             raise DatasetError(f"{folder} has no mask for image '{name}' (expected {stem}.png)")
-        paths.append(by_stem[stem])
+        if len(by_stem[stem]) > 1:
+            raise DatasetError(f"{folder} has {len(by_stem[stem])} masks for image '{name}': "
+                               f"{', '.join(p.name for p in by_stem[stem])} (keep one)")
+        paths.append(by_stem[stem][0])
     return paths
 
 
