@@ -136,6 +136,16 @@ def test_nvidia_disparity_problems(copy_of):
     expect_error(root, "disp", "3 files")
 
 
+def test_nvidia_empty_disparity_and_complex_poses(copy_of):
+    """A 0x0 disparity map reached cv2.resize (a traceback); complex poses lost their imaginary part."""
+    root = copy_of("nvidia")
+    np.save(root / "disp" / "001.npy", np.zeros((0, 0), np.float32))
+    expect_error(root, "001.npy", "(0, 0)")
+    root = copy_of("nvidia")
+    np.save(root / "poses_bounds.npy", np.load(root / "poses_bounds.npy").astype(np.complex64))
+    expect_error(root, "poses_bounds.npy", "numeric", "complex64")
+
+
 def test_nvidia_corrupt_mask(copy_of):
     root = copy_of("nvidia")
     corrupt(root / "motion_masks" / "000.png")

@@ -98,7 +98,7 @@ def read_disparity(path: Path) -> np.ndarray:
     array = load_npy(path)
     if array.ndim == 3 and array.shape[2] == 1:
         array = array[..., 0]
-    if array.ndim != 2:
+    if array.ndim != 2 or 0 in array.shape:
         raise DatasetError(f"disparity {path} has shape {array.shape}, expected [H, W]")
     require_finite(array, path, "disparity")
     return array.astype(np.float32)

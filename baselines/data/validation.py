@@ -51,7 +51,8 @@ def load_npy(path: Path) -> np.ndarray:
             array = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:
         raise DatasetError(f"malformed .npy file {path}: {exc}") from exc
-    if not isinstance(array, np.ndarray) or not np.issubdtype(array.dtype, np.number):
+    if not isinstance(array, np.ndarray) or not np.issubdtype(array.dtype, np.number) \
+            or np.issubdtype(array.dtype, np.complexfloating):  # a cast to float would drop the imaginary part
         raise DatasetError(f"{path} does not hold a numeric array (dtype {getattr(array, 'dtype', None)})")
     return array
 
