@@ -325,6 +325,27 @@ def test_truncated_jpeg_frame(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_frames_numbered_without_zero_padding(tmp_path):
+    """ffmpeg's %d names sort 1, 10, 11, 2, ...: frames shuffled in time, refused before any decoding;
+    the same for a --masks folder (its masks would pair with other frames)."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for k in (1, 2, 10):
+        (folder / f"frame{k}.png").write_bytes(b"not decoded")
+    assert_one_line_error(quiet(folder, tmp_path / "out"), "numbered without zero padding",
+                          "frame10.png comes before frame2.png", "%05d")
+    assert not (tmp_path / "out").exists()
+    from baselines.prepare.errors import PrepareError
+    from baselines.prepare.masks import read_mask_folder
+
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    for k in (1, 2, 10):
+        cv2.imwrite(str(masks / f"{k}.png"), np.zeros((12, 16), np.uint8))
+    with pytest.raises(PrepareError, match="masks of --masks .* 10.png comes before 2.png"):
+        read_mask_folder(masks, 3, (16, 12))
+
+
 def test_mixed_image_sizes(clip, tmp_path):
     folder = tmp_path / "mixed"
     folder.mkdir()

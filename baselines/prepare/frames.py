@@ -13,9 +13,10 @@ in the SOURCE sequence, so names order frames in time and say where each came fr
 from __future__ import annotations
 
 import math
-
+import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 import cv2
 import numpy as np
@@ -37,11 +38,29 @@ class SourceInfo:
     files: tuple[Path, ...] = ()  # folder only, sorted by name
 
 
+def _number_key(path: Path) -> list:
+    """`path`'s name with its digit runs as numbers: 'f2.png' before 'f10.png'."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
+
+
+def require_name_order(files: Sequence[Path], what: str, option: str) -> None:
+    """`PrepareError` when `files` (sorted by name) are numbered without zero padding, so that name
+    order is not number order ('10.png' before '2.png'): frames would be shuffled in time, or masks
+    paired with other frames."""
+    by_number = sorted(files, key=_number_key)
+    if list(files) != by_number:
+        first = next(k for k, (a, b) in enumerate(zip(files, by_number)) if a != b)
+        raise PrepareError(f"{what} {files[first].parent} are numbered without zero padding: by name "
+                           f"{files[first].name} comes before {by_number[first].name}, and name order is time order",
+                           f"rename them with zero-padded numbers (e.g. ffmpeg ... %05d.png), {option}")
+
+
 def _probe_folder(folder: Path) -> SourceInfo:
     files = tuple(sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS))
     if not files:
         raise PrepareError(f"{folder} holds no images ({', '.join(IMAGE_EXTENSIONS)})",
                            "point at a video file or a folder of JPG/PNG frames")
+    require_name_order(files, "the frames in", "or give the video itself")
     sizes: dict[tuple[int, int], Path] = {}
     for path in files:  # header-only reads would need another library; frames are small enough
         if truncated_jpeg(path):  # OpenCV would decode its missing rows as flat grey

@@ -37,6 +37,7 @@ from ..data.motion_masks import MotionMaskOptions, clean_mask, masks_from_pair_e
 from ..data.resolution import require_scaled_copy
 from ..data.optical_flow import pixel_grid
 from .errors import PrepareError
+from .frames import require_name_order
 
 RANSAC_PX = 1.0
 BORDER_DILATION_PX = 3
@@ -183,6 +184,7 @@ def read_mask_folder(folder: Path, count: int, size: tuple[int, int]) -> list[np
     if len(files) != count:
         raise PrepareError(f"--masks {folder} holds {len(files)} mask images but {count} frames were extracted",
                            "give one mask per kept frame (same order), or use --masks auto")
+    require_name_order(files, "the masks of --masks", "so that they sort as the frames do")
     masks = []
     for path in files:
         if truncated_jpeg(path):  # OpenCV would decode its missing rows as flat grey (a half-moving frame)
