@@ -22,6 +22,8 @@ DATASET_TYPES = ("auto", "nvidia", "dnerf", "hypernerf", "colmap", "panoptic", "
 KPLANES_KEYS = ("grid_dimensions", "input_coordinate_dim", "output_coordinate_dim", "resolution")
 
 _COMPAT_4DGS_UNUSED = "no effect in 4DGS either"
+# the highest SH degree the renderer evaluates (baselines/render/sh.py, as 3DGS's rasterizer)
+MAX_SH_DEGREE = 3
 
 
 def _check_device(value: str) -> str | None:
@@ -61,6 +63,24 @@ def _check_non_negative(value: float) -> str | None:
     return None if value >= 0 else f"must be >= 0, got {value}"
 
 
+def _check_fraction(value: float) -> str | None:
+    return None if 0.0 <= value <= 1.0 else f"must lie in [0, 1], got {value}"
+
+
+def _check_sh_degree(value: int) -> str | None:
+    # a higher degree trained until the active degree reached it (iteration 4000), then stopped
+    return None if 0 <= value <= MAX_SH_DEGREE else f"must be in [0, {MAX_SH_DEGREE}], got {value}"
+
+
+def _check_resolution(value: int) -> str | None:
+    # the readers refused 0 and other negatives too, but only once the run folder was claimed
+    return None if value == -1 or value > 0 else f"expected -1, 1, 2, 4, 8 or a width > 0, got {value}"
+
+
+def _check_render_iteration(value: int) -> str | None:
+    return None if value == -1 or value >= 0 else f"expected a saved iteration or -1 (the latest), got {value}"
+
+
 def _check_positive(value: int) -> str | None:
     return None if value > 0 else f"must be > 0, got {value}"
 
@@ -81,15 +101,15 @@ def _check_seed(value: int) -> str | None:
 class ModelParams:
     """Dataset loading and model size (4DGS "Loading Parameters")."""
 
-    sh_degree: int = param(3, "maximum spherical-harmonics degree of the Gaussians' colours",
-                           check=_check_non_negative)
+    sh_degree: int = param(3, "maximum spherical-harmonics degree of the Gaussians' colours (0 to 3)",
+                           check=_check_sh_degree)
     source_path: str = param("", "dataset directory (empty: the embedded synthetic scene)",
                              short="s")
     model_path: str = param("", "output directory (empty: output/<expname>)", short="m")
     images: str = param("images", "image sub-directory of the dataset", short="i")
     resolution: int = param(-1, "image size: -1 auto (width capped at 1600 px), 1/2/4/8 = "
                                 "downscale factor, other values = target width in pixels",
-                            short="r")
+                            short="r", check=_check_resolution)
     white_background: bool = param(True, "background colour white (else black) for renders and RGBA ground "
                                          "truth; unless a flag or config file sets it, the dataset family's "
                                          "(white: the simulator's scenes and D-NeRF; black: real captures), "
@@ -130,8 +150,8 @@ class PipelineParams:
                                      compat=True)
     compute_cov3D_python: bool = param(False, "4DGS: build 3D covariances in Python (always done "
                                               "in torch here)", compat=True)
-    debug: bool = param(False, "extra checks in the rasterizer (4DGS: CUDA rasterizer debug "
-                               "mode); --debug_from turns it on from an iteration", compat=True)
+    debug: bool = param(False, "4DGS: debug mode of its CUDA rasterizer (extra checks), from "
+                               "--debug_from on", compat=True)
     # --- ours ---
     backend: str = param("auto", "rasterizer backend: auto (gsplat on CUDA, else cpu), cpu, "
                                  "reference (dense test oracle) or gsplat", ours=True,
@@ -169,11 +189,14 @@ class ModelHiddenParams:
                                     "timebase_pe)", check=_check_positive)
     bounds: float = param(1.6, "initial half-extent of the HexPlane bounding box (reset from the "
                                "point cloud)")
-    plane_tv_weight: float = param(0.0001, "total-variation loss weight of the spatial planes")
+    plane_tv_weight: float = param(0.0001, "total-variation loss weight of the spatial planes",
+                                   check=_check_non_negative)
     time_smoothness_weight: float = param(0.01, "smoothness loss weight of the time planes; 0 also "
                                                 "switches off plane_tv_weight and l1_time_planes (as "
-                                                "in 4DGS, the three are one loss computed only then)")
-    l1_time_planes: float = param(0.0001, "L1 loss weight pulling the time planes towards 1")
+                                                "in 4DGS, the three are one loss computed only then)",
+                                          check=_check_non_negative)
+    l1_time_planes: float = param(0.0001, "L1 loss weight pulling the time planes towards 1",
+                                  check=_check_non_negative)
     kplanes_config: dict[str, Any] = param(
         {"grid_dimensions": 2, "input_coordinate_dim": 4, "output_coordinate_dim": 32,
          "resolution": [64, 64, 64, 25]},
@@ -242,8 +265,10 @@ class OptimizationParams:
     opacity_lr: float = param(0.05, "learning rate of opacities", check=_check_non_negative)
     scaling_lr: float = param(0.005, "learning rate of scales", check=_check_non_negative)
     rotation_lr: float = param(0.001, "learning rate of rotations", check=_check_non_negative)
-    percent_dense: float = param(0.01, "clone/split boundary, as a fraction of the scene extent")
-    lambda_dssim: float = param(0.0, "weight of the (1 - SSIM) term of the photometric loss")
+    percent_dense: float = param(0.01, "clone/split boundary, as a fraction of the scene extent",
+                                 check=_check_non_negative)
+    lambda_dssim: float = param(0.0, "weight of the (1 - SSIM) term of the photometric loss",
+                                check=_check_non_negative)
     lambda_lpips: float = param(0.0, "4DGS: LPIPS loss weight (its code is commented out, " +
                                 _COMPAT_4DGS_UNUSED + ")", compat=True)
     weight_constraint_init: float = param(1.0, "4DGS: unused (" + _COMPAT_4DGS_UNUSED + ")",
@@ -260,17 +285,21 @@ class OptimizationParams:
     densify_until_iter: int = param(15_000, "densification (and its gradient statistics) up to the "
                                             "iteration before this one (4DGS: iteration < it)")
     densify_grad_threshold_coarse: float = param(0.0002, "view-space gradient threshold for "
-                                                         "densification, coarse stage")
-    densify_grad_threshold_fine_init: float = param(0.0002, "same, fine stage, at its start")
+                                                         "densification, coarse stage",
+                                                 check=_check_non_negative)
+    densify_grad_threshold_fine_init: float = param(0.0002, "same, fine stage, at its start",
+                                                    check=_check_non_negative)
     densify_grad_threshold_after: float = param(0.0002, "same, fine stage, at densify_until_iter "
-                                                        "(linear in between)")
+                                                        "(linear in between)", check=_check_non_negative)
     pruning_from_iter: int = param(500, "large-count pruning from the iterations after this one (4DGS: iteration > it)")
     pruning_interval: int = param(100, "iterations between large-count pruning steps",
                                   check=_check_positive)
     opacity_threshold_coarse: float = param(0.005, "opacity below which Gaussians are pruned, "
-                                                   "coarse stage")
-    opacity_threshold_fine_init: float = param(0.005, "same, fine stage, at its start")
-    opacity_threshold_fine_after: float = param(0.005, "same, fine stage, at densify_until_iter")
+                                                   "coarse stage", check=_check_fraction)
+    opacity_threshold_fine_init: float = param(0.005, "same, fine stage, at its start",
+                                               check=_check_fraction)
+    opacity_threshold_fine_after: float = param(0.005, "same, fine stage, at densify_until_iter",
+                                                check=_check_fraction)
     batch_size: int = param(1, "views per iteration", check=_check_positive)
     add_point: bool = param(False, "grow points during densification (4DGS's gaussians.grow)", compat=True)
     # --- ours ---
@@ -299,7 +328,7 @@ class RunParams:
 
     ip: str = param("127.0.0.1", "4DGS: network GUI address (no GUI here)", compat=True)
     port: int = param(6009, "4DGS: network GUI port (no GUI here)", compat=True)
-    debug_from: int = param(-1, "iteration from which pipeline debug checks are on (-1: never)", compat=True)
+    debug_from: int = param(-1, "4DGS: iteration from which --debug is on (-1: never)", compat=True)
     detect_anomaly: bool = param(False, "torch.autograd anomaly detection")
     test_iterations: list[int] = param([3000, 7000, 14000], "iterations at which test views "
                                                             "are evaluated")
@@ -331,7 +360,8 @@ class RunParams:
 class RenderParams:
     """Flags of the render command (4DGS's render.py)."""
 
-    iteration: int = param(-1, "saved iteration to render (-1: the latest)")
+    iteration: int = param(-1, "saved iteration to render (-1: the latest)",
+                           check=_check_render_iteration)
     skip_train: bool = param(False, "do not render the training views")
     skip_test: bool = param(False, "do not render the test views")
     skip_video: bool = param(False, "do not render the video path")

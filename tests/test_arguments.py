@@ -297,3 +297,50 @@ def test_help_names_the_family_background_and_render_s_saved_configuration(capsy
         parse_render_args(["--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "the model directory's saved configuration replaces them" in text
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--sh_degree", "4"], "argument --sh_degree: must be in [0, 3], got 4"),
+    (["-r", "0"], "argument --resolution: expected -1, 1, 2, 4, 8 or a width > 0, got 0"),
+    (["--resolution", "-2"], "argument --resolution: expected -1, 1, 2, 4, 8 or a width > 0, got -2"),
+    (["--lambda_dssim", "-0.2"], "argument --lambda_dssim: must be >= 0, got -0.2"),
+    (["--percent_dense", "-0.01"], "argument --percent_dense: must be >= 0"),
+    (["--time_smoothness_weight", "-1"], "argument --time_smoothness_weight: must be >= 0"),
+    (["--plane_tv_weight", "-1"], "argument --plane_tv_weight: must be >= 0"),
+    (["--l1_time_planes", "-1"], "argument --l1_time_planes: must be >= 0"),
+    (["--densify_grad_threshold_after", "-0.0001"], "argument --densify_grad_threshold_after: must be >= 0"),
+    (["--opacity_threshold_fine_init", "1.5"], "argument --opacity_threshold_fine_init: must lie in [0, 1], got 1.5"),
+    (["--opacity_threshold_coarse", "-0.1"], "argument --opacity_threshold_coarse: must lie in [0, 1]"),
+])
+def test_out_of_range_values_are_flag_errors(argv, message, capsys):
+    """Values outside a flag's meaning were accepted: --sh_degree 4 trained until the active degree
+    reached 4 (fine iteration 4000) and then stopped in the SH evaluation (render.py of such a run at
+    once); -r 0 was refused by the reader only after the run folder was claimed, without the flag's
+    name; negative loss weights, thresholds and an opacity threshold above 1 trained silently."""
+    with pytest.raises(SystemExit) as exc:
+        parse_train_args(argv)
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_sh_degree_limit_is_the_renderer_s():
+    from arguments.params import MAX_SH_DEGREE
+    from baselines.render.sh import MAX_SH_DEGREE as RENDERER_MAX
+
+    assert MAX_SH_DEGREE == RENDERER_MAX
+    assert parse_train_args(["--sh_degree", "0", "-r", "640"]).model.sh_degree == 0
+
+
+def test_a_config_file_out_of_range_value_names_the_file_and_key(tmp_path):
+    cfg = tmp_path / "c.py"
+    cfg.write_text("ModelParams = dict(sh_degree=5)\n")
+    with pytest.raises(ConfigError, match=r"c\.py: ModelParams\.sh_degree: must be in \[0, 3\], got 5"):
+        parse_train_args(["--configs", str(cfg)])
+
+
+def test_render_iteration_below_minus_one_is_refused(tmp_path, capsys):
+    """--iteration -5 rendered the latest iteration, as -1 does, without a word."""
+    with pytest.raises(SystemExit) as exc:
+        parse_render_args(["-m", str(tmp_path), "--iteration", "-5"])
+    assert exc.value.code == 2
+    assert "argument --iteration: expected a saved iteration or -1 (the latest), got -5" in capsys.readouterr().err
