@@ -599,6 +599,32 @@ def test_threads_are_at_least_one_or_every_core(tmp_path, threads, refused):
         options.validate()
 
 
+@pytest.mark.parametrize("seed, refused", [(-1, True), (2**31, True), (0, False), (2**31 - 1, False)])
+def test_a_seed_outside_colmap_s_range_is_refused_before_any_frame_is_read(tmp_path, seed, refused):
+    """--seed -1 went to pycolmap as its "seed from the clock" (a run that does not repeat) and to numpy
+    on the fixed-centre path, which refused it after SfM; --seed 2**31 overflowed pycolmap's int once
+    the frames were extracted."""
+    from baselines.prepare.errors import PrepareError
+    from baselines.prepare.pipeline import PrepareOptions
+    from baselines.prepare.sfm import SfmOptions
+
+    options = PrepareOptions(source=tmp_path / "clip.mp4", output=tmp_path / "out", sfm=SfmOptions(seed=seed))
+    if refused:
+        with pytest.raises(PrepareError, match=rf"--seed {seed}: must be in \[0, 2147483647\]"):
+            options.validate()
+    else:
+        options.validate()
+
+
+def test_an_unknown_mask_mode_names_every_mode(tmp_path):
+    """The message listed auto, posed and none: not background."""
+    from baselines.prepare.errors import PrepareError
+    from baselines.prepare.pipeline import PrepareOptions
+
+    with pytest.raises(PrepareError, match="--masks moving: expected auto, posed, background, none or a folder"):
+        PrepareOptions(source=tmp_path / "clip.mp4", output=tmp_path / "out", masks="moving").validate()
+
+
 def test_homographies_that_are_not_turns_are_told_apart():
     """A camera moving towards a wall gives zoom homographies, which no rotation about one centre
     explains: `turns_about_one_centre` is False (prepare then keeps its SfM error); the same

@@ -48,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="COLMAP camera model shared by all frames (distortion is ignored by the readers)")
     parser.add_argument("--overlap", type=int, default=10, help="sequential matching: frames matched ahead (at least 1; default 10)")
     parser.add_argument("--threads", type=int, default=1, help="threads for pycolmap (default 1; -1: every core, COLMAP's convention)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed of RANSAC and the mapper")
+    parser.add_argument("--seed", type=int, default=0, help="random seed of RANSAC and the mapper (0 to 2**31 - 1)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.add_argument("--no-fixed-centre", dest="fixed_centre", action="store_false",
                         help="refuse a camera that does not move or only turns (by default such a tripod shot is "

@@ -52,6 +52,8 @@ MASK_MODES = ("auto", "posed", "background", "none")
 # the mapper name of a camera that does not translate (fixed_centre.py): a static or turning
 # tripod shot, written with one centre for every frame instead of refused
 FIXED_CENTRE = "fixed centre"
+# --seed: COLMAP's random seeds are C ints (pycolmap refuses more); -1 there means "seed from the clock"
+SEED_MAX = 2**31 - 1
 
 
 @dataclass
@@ -81,10 +83,12 @@ class PrepareOptions:
             raise PrepareError(f"--threads {self.sfm.threads}: must be at least 1, or -1 for every core")
         if self.sfm.overlap < 1:  # 0 matches no pair: SfM would fail only after extracting every frame's features
             raise PrepareError(f"--overlap {self.sfm.overlap}: must be at least 1 (frames matched ahead)")
+        if not 0 <= self.sfm.seed <= SEED_MAX:  # before any frame is read: pycolmap would take -1, numpy not
+            raise PrepareError(f"--seed {self.sfm.seed}: must be in [0, {SEED_MAX}]")
         if self.sfm.camera_model not in CAMERA_MODELS:
             raise PrepareError(f"--camera-model {self.sfm.camera_model}: expected one of {', '.join(CAMERA_MODELS)}")
         if self.masks not in MASK_MODES and not Path(self.masks).is_dir():
-            raise PrepareError(f"--masks {self.masks}: expected auto, posed, none or a folder of mask images")
+            raise PrepareError(f"--masks {self.masks}: expected {', '.join(MASK_MODES)} or a folder of mask images")
         output = Path(self.output)
         if output.exists() and (not output.is_dir() or (any(output.iterdir()) and not (output / WORK_DIR).is_dir())):
             raise PrepareError(f"output {output} exists and was not written by prepare",
