@@ -152,6 +152,20 @@ def test_bad_input_gives_one_error_line(tiny_reflow_run, tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("flags, message", [
+    (["--fps", "0"], "--fps 0: must be >= 1"),
+    (["--max_tracks", "-3"], "--max_tracks -3: must be >= 1"),
+    (["--trail", "nan"], "--trail nan: must be >= 0"),
+])
+def test_a_bad_video_flag_is_named_alone(tmp_path, flags, message):
+    """One message named --max_tracks, --fps and --trail together, whichever was wrong."""
+    from baselines.export.cli import parse_args
+
+    with pytest.raises(ValueError) as exc:
+        parse_args(["-m", str(tmp_path), "--format", "tracks", "-o", str(tmp_path / "o"), *flags])
+    assert str(exc.value) == message
+
+
 def _oracle_tracks(scene_dir: Path, frames: list[int]) -> Tracks:
     """Exact surface points seen at the pixel centres of `frames`, moved with their objects over
     every frame (the simulator's own geometry), with the simulator's cameras."""

@@ -45,9 +45,9 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     parser.add_argument("--all_gaussians", action="store_true", help="tracks: every Gaussian, not only the dynamic ones")
     parser.add_argument("--no_video", action="store_true", help="tracks: no MP4")
     parser.add_argument("--video_views", default="test", choices=("test", "all"), help="tracks: cameras of the MP4")
-    parser.add_argument("--max_tracks", type=int, default=400, help="tracks drawn in the MP4")
-    parser.add_argument("--trail", type=float, default=0.3, help="trail length in normalised time")
-    parser.add_argument("--fps", type=int, default=5)
+    parser.add_argument("--max_tracks", type=int, default=400, help="tracks drawn in the MP4 (default 400)")
+    parser.add_argument("--trail", type=float, default=0.3, help="trail length in normalised time (default 0.3)")
+    parser.add_argument("--fps", type=int, default=5, help="tracks: frame rate of the MP4 (default 5)")
     args, rest = parser.parse_known_args(argv)
     if args.times is not None:
         bad = [t for t in args.times if not (math.isfinite(t) and 0.0 <= t <= 1.0)]
@@ -55,8 +55,11 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
             raise ValueError(f"--times must be finite and in [0, 1], got {bad}")
     if args.format == "ply" and not args.times:
         raise ValueError("--format ply needs --times (e.g. --times 0 0.5 1)")
-    if args.max_tracks < 1 or args.fps < 1 or not args.trail >= 0:
-        raise ValueError("--max_tracks and --fps must be >= 1 and --trail >= 0")
+    for flag, value in (("--max_tracks", args.max_tracks), ("--fps", args.fps)):
+        if value < 1:
+            raise ValueError(f"{flag} {value}: must be >= 1")
+    if not args.trail >= 0:  # NaN too
+        raise ValueError(f"--trail {args.trail}: must be >= 0")
     return args, ["-m", args.model_path, *rest]
 
 
