@@ -104,6 +104,11 @@ def _grid_side(value: int) -> str | None:
     return None if value == 0 or value >= 2 else "must be 0 (off) or >= 2"
 
 
+def _edge_ratio(value: float) -> str | None:
+    # a depth ratio of at most 1 is exceeded by every pixel whose neighbourhood is not flat: all "edges"
+    return None if value == 0 or value > 1 else f"must be 0 (off) or > 1, got {value}"
+
+
 def _nonzero_ints(value: list[int]) -> str | None:
     bad = [o for o in value if not isinstance(o, int) or isinstance(o, bool) or o == 0]
     if bad or not value:
@@ -251,7 +256,7 @@ class ReFlowParams:
                                         "such pixels between the object and the background) take the nearest "
                                         "depth of their 5x5 neighbourhood (README: \"Seeds on soft depth edges\"); 0 = "
                                         "the depth as it is",
-                                   check=_non_negative)
+                                   check=_edge_ratio)
     seed_points: int = param(20_000, "most dynamic points seeded inside the motion masks, over all keyframes "
                                      "(0 = no seeding)", check=_non_negative)
     dynamic_keyframes: int = param(8, "ours: frames the dynamic points are seeded from, spread over the "

@@ -49,3 +49,22 @@ def test_seeds_from_a_soft_depth_map_sit_on_the_object_with_the_edge_ratio():
     assert np.percentile(np.abs(snapped.points[:, 2] / 300 - 1), 90) < 0.05
     flat = seed_dynamic_points(camera, mask, 300.0, 10_000, edge_ratio=1.1)  # one depth: nothing to snap
     np.testing.assert_allclose(flat.points[:, 2], 300.0, rtol=1e-6)
+
+
+def test_an_edge_ratio_of_at_most_one_is_a_flag_error(capsys):
+    """--seed_edge_ratio 0.5 passed the >= 0 check, and at a ratio <= 1 every pixel whose neighbourhood is
+    not flat is an "edge": every seed took the nearest depth of its 5x5 neighbourhood."""
+    import pytest
+
+    from arguments import parse_train_args
+    from reflow_plugin.params import ReFlowParams
+
+    depth, _ = _box_in_front(2.0)
+    assert depth_edges(depth, 0.5).all()
+    for value in ("0.5", "1"):
+        with pytest.raises(SystemExit):
+            parse_train_args(["--seed_edge_ratio", value], extra_groups={"ReFlowParams": ReFlowParams})
+        assert f"argument --seed_edge_ratio: must be 0 (off) or > 1, got {float(value)}" in capsys.readouterr().err
+    for value in ("0", "1.05"):
+        args = parse_train_args(["--seed_edge_ratio", value], extra_groups={"ReFlowParams": ReFlowParams})
+        assert args.extra["ReFlowParams"].seed_edge_ratio == float(value)
