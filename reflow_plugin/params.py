@@ -104,6 +104,11 @@ def _grid_side(value: int) -> str | None:
     return None if value == 0 or value >= 2 else "must be 0 (off) or >= 2"
 
 
+def _clip_len(value: int) -> str | None:
+    # the alignment refused 1 too (canonical/coarse_to_fine.py), but only after the masks and depth fits
+    return None if value >= 2 else f"must be at least 2 (a clip pairs its frames), got {value}"
+
+
 def _edge_ratio(value: float) -> str | None:
     # a depth ratio of at most 1 is exceeded by every pixel whose neighbourhood is not flat: all "edges"
     return None if value == 0 or value > 1 else f"must be 0 (off) or > 1, got {value}"
@@ -280,7 +285,7 @@ class ReFlowParams:
     canonical_clip_len: int = param(25, "frames per clip of the pairwise coarse-to-fine alignment (the first of "
                                         "each is a keyframe; paper: 25-30); not read where the inverse-depth "
                                         "refinement runs instead (depth provider with sparse points or the "
-                                        "dataset's near/far bounds)", check=_positive)
+                                        "dataset's near/far bounds)", check=_clip_len)
     canonical_window: int = param(4, "ours: inside a clip, frames at most this far apart are paired (plus "
                                      "every frame with its keyframe)", check=_positive)
     canonical_voxel: float = param(0.01, "voxel side of the fused static cloud as a fraction of the median "

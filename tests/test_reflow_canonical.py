@@ -271,6 +271,18 @@ def test_params_flags_and_options():
     assert not options.align and options.clip_len == 7
 
 
+def test_a_one_frame_clip_is_a_flag_error(capsys):
+    """--canonical_clip_len 1 passed the > 0 check and stopped the pairwise alignment (where it runs),
+    after the motion masks and the depth fits."""
+    from arguments import parse_train_args
+
+    with pytest.raises(SystemExit):
+        parse_train_args(["--canonical_clip_len", "1"], extra_groups={"ReFlowParams": ReFlowParams})
+    assert "argument --canonical_clip_len: must be at least 2 (a clip pairs its frames), got 1" in capsys.readouterr().err
+    args = parse_train_args(["--canonical_clip_len", "2"], extra_groups={"ReFlowParams": ReFlowParams})
+    assert args.extra["ReFlowParams"].canonical_clip_len == 2
+
+
 def test_plugin_uses_the_canonical_space(scene_path, tmp_path):
     out = tmp_path / "run"
     argv = ["-s", str(scene_path), "-m", str(out), "--configs", str(REPO_ROOT / "arguments/synthetic/default.py"),
