@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 import types
 import typing
 from collections.abc import Callable
@@ -146,7 +147,7 @@ def coerce(spec: FieldSpec, value: Any) -> Any:
 
     Lossless conversions: int -> float, integral float -> int, tuple -> list, and (for
     ``comma_list`` fields) a comma-separated string -> list of names. bool is never taken for a
-    number and numbers are never taken for bool.
+    number and numbers are never taken for bool; a float field takes finite numbers only.
     """
     if value is None:
         if spec.optional:
@@ -176,7 +177,13 @@ def _coerce_scalar(tp: type, value: Any, expected: str) -> Any:
             return int(value)
     elif tp is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
+            try:
+                out = float(value)
+            except OverflowError:  # an int beyond float range
+                out = math.inf
+            if not math.isfinite(out):  # 1e999 on a command line, float('nan') in a config file
+                raise CoercionError(f"expected a finite number, got {out!r}")
+            return out
     elif tp is str:
         if isinstance(value, str):
             return value

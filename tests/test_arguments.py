@@ -344,3 +344,28 @@ def test_render_iteration_below_minus_one_is_refused(tmp_path, capsys):
         parse_render_args(["-m", str(tmp_path), "--iteration", "-5"])
     assert exc.value.code == 2
     assert "argument --iteration: expected a saved iteration or -1 (the latest), got -5" in capsys.readouterr().err
+
+
+def test_a_float_flag_takes_finite_numbers_only(tmp_path, capsys):
+    """1e999 parsed as inf and passed every >= 0 check (an infinite loss weight trains to NaN); a config
+    file's float('nan') passed every field without a check."""
+    with pytest.raises(SystemExit):
+        parse_train_args(["--lambda_dssim", "1e999"])
+    assert "argument --lambda_dssim: expected a finite number, got inf" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        parse_train_args(["--flow_blur_sigmas", "2", "1e999"], extra_groups=_reflow_groups())
+    assert "argument --flow_blur_sigmas: expected a finite number, got inf" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        parse_train_args(["--bounds", "1" + "0" * 400])
+    assert "argument --bounds: expected a finite number, got inf" in capsys.readouterr().err
+    cfg = tmp_path / "c.py"
+    cfg.write_text("ModelHiddenParams = dict(bounds=float('nan'))\n")
+    with pytest.raises(ConfigError, match=r"c\.py: ModelHiddenParams\.bounds: expected a finite number, got nan"):
+        parse_train_args(["--configs", str(cfg)])
+    assert parse_train_args(["--bounds", "2"]).hidden.bounds == 2.0
+
+
+def _reflow_groups() -> dict[str, type]:
+    from reflow_plugin.params import ReFlowParams
+
+    return {"ReFlowParams": ReFlowParams}
