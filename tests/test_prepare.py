@@ -584,36 +584,28 @@ def test_an_overlap_below_one_is_refused_before_any_frame_is_read(tmp_path, over
     PrepareOptions(source=tmp_path / "clip.mp4", output=tmp_path / "out", sfm=SfmOptions(overlap=1)).validate()
 
 
-@pytest.mark.parametrize("threads, refused", [(0, True), (-2, True), (-1, False), (2, False)])
-def test_threads_are_at_least_one_or_every_core(tmp_path, threads, refused):
-    """--threads 0 or below -1 went to pycolmap as they were; -1 is COLMAP's "every core"."""
+@pytest.mark.parametrize("field, value, refusal", [
+    # --threads 0 or below -1 went to pycolmap as they were; -1 is COLMAP's "every core"
+    ("threads", 0, "--threads 0: must be at least 1, or -1 for every core"),
+    ("threads", -2, "--threads -2: must be at least 1, or -1 for every core"),
+    ("threads", -1, None), ("threads", 2, None),
+    # --seed -1 was pycolmap's "seed from the clock" (a run that does not repeat) and a numpy error
+    # after SfM on the fixed-centre path; 2**31 overflowed pycolmap's int after frame extraction
+    ("seed", -1, r"--seed -1: must be in \[0, 2147483647\]"),
+    ("seed", 2**31, r"--seed 2147483648: must be in \[0, 2147483647\]"),
+    ("seed", 0, None), ("seed", 2**31 - 1, None),
+])
+def test_sfm_options_out_of_pycolmap_s_range_are_refused_before_any_frame_is_read(tmp_path, field, value, refusal):
     from baselines.prepare.errors import PrepareError
     from baselines.prepare.pipeline import PrepareOptions
     from baselines.prepare.sfm import SfmOptions
 
-    options = PrepareOptions(source=tmp_path / "clip.mp4", output=tmp_path / "out", sfm=SfmOptions(threads=threads))
-    if refused:
-        with pytest.raises(PrepareError, match=f"--threads {threads}: must be at least 1, or -1 for every core"):
-            options.validate()
-    else:
+    options = PrepareOptions(source=tmp_path / "clip.mp4", output=tmp_path / "out", sfm=SfmOptions(**{field: value}))
+    if refusal is None:
         options.validate()
-
-
-@pytest.mark.parametrize("seed, refused", [(-1, True), (2**31, True), (0, False), (2**31 - 1, False)])
-def test_a_seed_outside_colmap_s_range_is_refused_before_any_frame_is_read(tmp_path, seed, refused):
-    """--seed -1 went to pycolmap as its "seed from the clock" (a run that does not repeat) and to numpy
-    on the fixed-centre path, which refused it after SfM; --seed 2**31 overflowed pycolmap's int once
-    the frames were extracted."""
-    from baselines.prepare.errors import PrepareError
-    from baselines.prepare.pipeline import PrepareOptions
-    from baselines.prepare.sfm import SfmOptions
-
-    options = PrepareOptions(source=tmp_path / "clip.mp4", output=tmp_path / "out", sfm=SfmOptions(seed=seed))
-    if refused:
-        with pytest.raises(PrepareError, match=rf"--seed {seed}: must be in \[0, 2147483647\]"):
-            options.validate()
     else:
-        options.validate()
+        with pytest.raises(PrepareError, match=refusal):
+            options.validate()
 
 
 def test_an_unknown_mask_mode_names_every_mode(tmp_path):
